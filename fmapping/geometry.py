@@ -1,0 +1,200 @@
+"""Batched, differentiable SO(3) / SE(3) in torch.
+
+Conventions (the only place they are written down; every module follows them):
+
+* World units are metres. Camera frames are OpenCV: x right, y down, z forward.
+* A pose is a 4x4 camera-to-world matrix ``c2w`` (``x_world = c2w @ x_cam``).
+* A tangent vector of SE(3) is ``xi = (rho, phi)`` with translation part ``rho``
+  first and rotation part ``phi`` (axis-angle) last; ``se3_exp(xi)`` is the
+  matrix exponential of ``[[hat(phi), rho], [0, 0]]``.
+* Pose corrections are applied on the left: ``c2w_new = se3_exp(xi) @ c2w``.
+* Quaternions are ``(qx, qy, qz, qw)`` (TUM and scipy order), unit norm.
+
+All functions accept any leading batch shape ``(..., 3)`` / ``(..., 3, 3)`` /
+``(..., 4, 4)`` and are stable at small angles (Taylor branches chosen with
+``torch.where`` on safe inputs, so gradients stay finite at exactly zero).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+_SMALL = 1e-6  # theta^2 below which Taylor expansions are used
+
+
+def hat(v: Tensor) -> Tensor:
+    """Skew-symmetric matrix of ``v`` (..., 3) -> (..., 3, 3)."""
+    x, y, z = v.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack(
+        [torch.stack([o, -z, y], -1), torch.stack([z, o, -x], -1), torch.stack([-y, x, o], -1)], -2
+    )
+
+
+def vee(m: Tensor) -> Tensor:
+    """Inverse of :func:`hat` for the antisymmetric part of ``m``."""
+    return 0.5 * torch.stack(
+        [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1
+    )
+
+
+def _sin_coeffs(theta2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """A = sin(t)/t, B = (1-cos t)/t^2, C = (t - sin t)/t^3, safe at t = 0."""
+    small = theta2 < _SMALL
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    t = torch.sqrt(t2)
+    a = torch.where(small, 1 - theta2 / 6 + theta2**2 / 120, torch.sin(t) / t)
+    b = torch.where(small, 0.5 - theta2 / 24 + theta2**2 / 720, (1 - torch.cos(t)) / t2)
+    c = torch.where(small, 1 / 6 - theta2 / 120 + theta2**2 / 5040, (t - torch.sin(t)) / (t2 * t))
+    return a, b, c
+
+
+def so3_exp(phi: Tensor) -> Tensor:
+    """Rodrigues: axis-angle (..., 3) -> rotation (..., 3, 3)."""
+    theta2 = (phi * phi).sum(-1)
+    a, b, _ = _sin_coeffs(theta2)
+    k = hat(phi)
+    eye = torch.eye(3, dtype=phi.dtype, device=phi.device).expand(k.shape)
+    return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
+
+
+def so3_log(rot: Tensor) -> Tensor:
+    """Rotation (..., 3, 3) -> axis-angle (..., 3), valid on [0, pi]."""
+    s_vec = vee(rot)  # sin(theta) * axis
+    cos = ((rot[..., 0, 0] + rot[..., 1, 1] + rot[..., 2, 2]) - 1) / 2
+    sin = torch.linalg.norm(s_vec, dim=-1)
+    theta = torch.atan2(sin, cos.clamp(-1, 1))
+    small = theta < 1e-3
+    near_pi = theta > math.pi - 1e-2
+    # generic: theta / sin(theta) * s_vec
+    sin_safe = torch.where(small | near_pi, torch.ones_like(sin), sin)
+    generic = (theta / sin_safe)[..., None] * s_vec
+    # small: theta/sin(theta) ~= 1 + theta^2/6, theta^2 ~= |s_vec|^2
+    s2 = (s_vec * s_vec).sum(-1)
+    small_v = (1 + s2 / 6 + 7 * s2**2 / 120)[..., None] * s_vec
+    # near pi: axis from the symmetric part, sign from the antisymmetric one
+    sym = 0.5 * (rot + rot.transpose(-1, -2))
+    eye = torch.eye(3, dtype=rot.dtype, device=rot.device)
+    one_m_cos = torch.where(near_pi, 1 - cos, torch.ones_like(cos))
+    nn_t = (sym - cos[..., None, None] * eye) / one_m_cos[..., None, None]
+    diag = torch.diagonal(nn_t, dim1=-2, dim2=-1)
+    idx = diag.argmax(-1)
+    col = torch.gather(nn_t, -1, idx[..., None, None].expand(*nn_t.shape[:-1], 1))[..., 0]
+    col_norm = torch.linalg.norm(col, dim=-1, keepdim=True).clamp_min(1e-12)
+    axis = col / col_norm
+    sign = torch.where((axis * s_vec).sum(-1) < 0, -torch.ones_like(theta), torch.ones_like(theta))
+    pi_v = (sign * theta)[..., None] * axis
+    out = torch.where(small[..., None], small_v, generic)
+    return torch.where(near_pi[..., None], pi_v, out)
+
+
+def _left_jacobian(phi: Tensor) -> Tensor:
+    theta2 = (phi * phi).sum(-1)
+    _, b, c = _sin_coeffs(theta2)
+    k = hat(phi)
+    eye = torch.eye(3, dtype=phi.dtype, device=phi.device).expand(k.shape)
+    return eye + b[..., None, None] * k + c[..., None, None] * (k @ k)
+
+
+def _left_jacobian_inv(phi: Tensor) -> Tensor:
+    theta2 = (phi * phi).sum(-1)
+    small = theta2 < _SMALL
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    t = torch.sqrt(t2)
+    # coefficient of K^2: (1/t^2) * (1 - (t/2) cot(t/2)); Taylor 1/12 + t^2/720
+    half = t / 2
+    d = torch.where(small, 1 / 12 + theta2 / 720, (1 - half * torch.cos(half) / torch.sin(half)) / t2)
+    k = hat(phi)
+    eye = torch.eye(3, dtype=phi.dtype, device=phi.device).expand(k.shape)
+    return eye - 0.5 * k + d[..., None, None] * (k @ k)
+
+
+def se3_exp(xi: Tensor) -> Tensor:
+    """Twist (..., 6) = (rho, phi) -> rigid transform (..., 4, 4)."""
+    rho, phi = xi[..., :3], xi[..., 3:]
+    rot = so3_exp(phi)
+    trans = (_left_jacobian(phi) @ rho[..., None])[..., 0]
+    return make_pose(rot, trans)
+
+
+def se3_log(t: Tensor) -> Tensor:
+    """Rigid transform (..., 4, 4) -> twist (..., 6) = (rho, phi)."""
+    phi = so3_log(t[..., :3, :3])
+    rho = (_left_jacobian_inv(phi) @ t[..., :3, 3:4])[..., 0]
+    return torch.cat([rho, phi], -1)
+
+
+def make_pose(rot: Tensor, trans: Tensor) -> Tensor:
+    """Stack rotation (..., 3, 3) and translation (..., 3) into (..., 4, 4)."""
+    top = torch.cat([rot, trans[..., None]], -1)
+    bottom = torch.zeros(*rot.shape[:-2], 1, 4, dtype=rot.dtype, device=rot.device)
+    bottom[..., 0, 3] = 1
+    return torch.cat([top, bottom], -2)
+
+
+def se3_inverse(t: Tensor) -> Tensor:
+    """Inverse of a rigid transform without a general matrix inverse."""
+    rot_t = t[..., :3, :3].transpose(-1, -2)
+    return make_pose(rot_t, -(rot_t @ t[..., :3, 3:4])[..., 0])
+
+
+def se3_compose(a: Tensor, b: Tensor) -> Tensor:
+    """``a @ b`` for rigid transforms (kept for readability at call sites)."""
+    return a @ b
+
+
+def transform_points(t: Tensor, pts: Tensor) -> Tensor:
+    """Apply (..., 4, 4) to points (..., N, 3)."""
+    return pts @ t[..., :3, :3].transpose(-1, -2) + t[..., None, :3, 3]
+
+
+def quat_to_matrix(q: Tensor) -> Tensor:
+    """Quaternion (..., 4) as (x, y, z, w) -> rotation (..., 3, 3). Normalises first."""
+    q = q / torch.linalg.norm(q, dim=-1, keepdim=True)
+    x, y, z, w = q.unbind(-1)
+    return torch.stack(
+        [
+            torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            torch.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            torch.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def matrix_to_quat(rot: Tensor) -> Tensor:
+    """Rotation (..., 3, 3) -> unit quaternion (..., 4) as (x, y, z, w) with w >= 0."""
+    m = rot
+    tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    # four candidate parametrisations; pick the numerically largest denominator
+    cands = torch.stack(
+        [
+            torch.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1], 1 + tr], -1),
+            torch.stack([1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2], m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0], m[..., 2, 1] - m[..., 1, 2]], -1),
+            torch.stack([m[..., 0, 1] + m[..., 1, 0], 1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2], m[..., 1, 2] + m[..., 2, 1], m[..., 0, 2] - m[..., 2, 0]], -1),
+            torch.stack([m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2], m[..., 1, 0] - m[..., 0, 1]], -1),
+        ],
+        -2,
+    )  # (..., 4 candidates, 4)
+    keys = torch.stack([tr, m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]], -1)
+    best = keys.argmax(-1)
+    q = torch.gather(cands, -2, best[..., None, None].expand(*best.shape, 1, 4))[..., 0, :]
+    q = q / torch.linalg.norm(q, dim=-1, keepdim=True)
+    return torch.where(q[..., 3:4] < 0, -q, q)
+
+
+def rotation_angle(rot: Tensor) -> Tensor:
+    """Angle in radians of a rotation (..., 3, 3)."""
+    return torch.linalg.norm(so3_log(rot), dim=-1)
+
+
+def as_tensor_pose(c2w, dtype=torch.float32, device=None) -> Tensor:
+    """numpy / list / tensor 4x4 -> tensor, checking shape and finiteness."""
+    t = torch.as_tensor(c2w, dtype=dtype, device=device)
+    if t.shape[-2:] != (4, 4):
+        raise ValueError(f"pose must be 4x4, got shape {tuple(t.shape)}")
+    if not torch.isfinite(t).all():
+        raise ValueError("pose contains NaN or Inf")
+    return t
