@@ -74,6 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--gt", required=True)
     e.add_argument("--align", default="sim3", choices=["sim3", "se3", "none"])
     e.add_argument("--max-dt", type=float, default=0.02)
+    e.add_argument("--delta", type=int, default=1, help="RPE frame step")
 
     p = sub.add_parser("up", help="run the multi-process system (io, tracker, mapper over zenoh)")
     p.add_argument("--data", default=None, help="dataset folder (default: a generated synthetic scene)")
@@ -118,7 +119,7 @@ def cmd_map(a) -> int:
 
 
 def cmd_slam(a) -> int:
-    from fmapping.pipeline import run_slam
+    from fmapping.slam import run_slam
 
     stats = run_slam(a)
     _print_json(stats.get("summary", {}))
@@ -131,7 +132,7 @@ def cmd_eval(a) -> int:
     if a.what == "recon":
         res = metrics.eval_recon_files(a.pred, a.gt, samples=a.samples, threshold=a.threshold, seed=a.seed)
     else:
-        res = metrics.eval_traj_files(a.est, a.gt, align=a.align, max_dt=a.max_dt)
+        res = metrics.eval_traj_files(a.est, a.gt, align=a.align, max_dt=a.max_dt, delta=a.delta)
     _print_json(res)
     return 0
 
