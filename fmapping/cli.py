@@ -162,6 +162,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except (FileNotFoundError, ValueError) as e:  # bad input: one clear line, no traceback
         print(f"fmapping {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # output piped into e.g. `head`
+        return 0
     except KeyboardInterrupt:
         print(f"fmapping {args.command}: interrupted", file=sys.stderr)
         return 130
