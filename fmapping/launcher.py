@@ -1,0 +1,346 @@
+"""``fmapping up``: run the multi-process system on one machine.
+
+Starts, as separate OS processes (``sys.executable -m services...``):
+
+* ``services.mapper`` (first),
+* ``services.io record`` (OUT/record/: traj_<source>.txt, points.ply),
+* ``services.io view --save OUT/run.rrd`` (rerun recording),
+* ``services.tracker`` when ``--poses tracker``,
+* ``services.io play`` last (it waits until the others report, then streams the data).
+
+Networking is an explicit zenoh peer mesh on loopback: each process listens on a free
+``tcp/127.0.0.1:<port>`` and connects to every process started before it (multicast
+scouting off), in a namespace of its own (``fmapping/up<pid>/...``). Each process logs
+to OUT/logs/<name>.log and writes its status to OUT/status/<name>.json, which the launcher
+reads to show progress. At the end of the sequence play sends the end-of-sequence stop;
+the mapper runs its closing stage and writes OUT/map.ply, OUT/mesh.ply, OUT/traj.txt and
+OUT/stats.json; record and view finish after it. Ctrl-C (or SIGTERM) stops every process
+(SIGINT, then SIGKILL after a grace period); the mapper still writes its current map.
+
+This module only starts processes and reads files: it does not import zenoh.
+With ``--poses external`` a producer must publish ``Pose(source="external")`` (see
+``examples/publish_poses.py``; the launcher prints the command); play waits for it.
+
+``--config`` YAML: either mapper overrides at the top level (like ``fmapping map``), or
+sections ``mapper:``, ``tracker:`` and ``launcher:`` (keys: ``timeout`` seconds,
+``view`` true/false, ``window`` frames in flight, ``frames`` / ``size`` / ``seed`` of
+the generated scene, ``threads`` per torch process).
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import yaml
+
+SECTIONS = ("mapper", "tracker", "launcher")
+
+
+@dataclass
+class LauncherOptions:
+    timeout: Optional[float] = None  # seconds for the whole run (None = no limit)
+    view: bool = True
+    window: int = 4
+    frames: int = 200
+    size: tuple = (320, 240)
+    seed: int = 0
+    threads: int = 0
+    start_timeout: float = 120.0
+    grace: float = 15.0  # seconds between SIGINT and SIGKILL on shutdown
+    extra: dict = field(default_factory=dict)
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def split_config(path: Optional[str], out: Path) -> tuple[Optional[Path], Optional[Path], LauncherOptions]:
+    """Split an ``up`` config into mapper / tracker YAML files under OUT/config and launcher options."""
+    opts = LauncherOptions()
+    if not path:
+        return None, None, opts
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"config file not found: {p}")
+    try:
+        data = yaml.safe_load(p.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ValueError(f"{p}: invalid YAML: {e}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{p}: expected a mapping at the top level")
+    if not data or not set(data) <= set(SECTIONS):
+        data = {"mapper": data}  # plain mapper overrides
+    cdir = out / "config"
+    cdir.mkdir(parents=True, exist_ok=True)
+    files = {}
+    for name in ("mapper", "tracker"):
+        if data.get(name):
+            if not isinstance(data[name], dict):
+                raise ValueError(f"{p}: section {name!r} must be a mapping")
+            files[name] = cdir / f"{name}.yaml"
+            files[name].write_text(yaml.safe_dump(data[name], sort_keys=False))
+    launch = data.get("launcher") or {}
+    if not isinstance(launch, dict):
+        raise ValueError(f"{p}: section 'launcher' must be a mapping")
+    valid = {f for f in LauncherOptions.__dataclass_fields__ if f != "extra"}
+    unknown = set(launch) - valid
+    if unknown:
+        raise ValueError(f"{p}: unknown launcher keys {sorted(unknown)} (valid: {', '.join(sorted(valid))})")
+    for k, v in launch.items():
+        setattr(opts, k, tuple(v) if k == "size" else v)
+    return files.get("mapper"), files.get("tracker"), opts
+
+
+def _scene(out: Path, opts: LauncherOptions) -> Path:
+    """Generate (or reuse) the synthetic scene OUT/scene."""
+    scene = out / "scene"
+    meta = scene / "scene.json"
+    if meta.is_file():
+        try:
+            info = json.loads(meta.read_text())
+            if (info.get("frames") == opts.frames and list(info.get("size", [])) == list(opts.size)
+                    and info.get("seed") == opts.seed):
+                print(f"fmapping up: reusing the synthetic scene in {scene}", flush=True)
+                return scene
+        except (OSError, ValueError):
+            pass
+    from fmapping.synthetic import generate_scene
+
+    print(f"fmapping up: generating a synthetic scene ({opts.frames} frames, {opts.size[0]}x{opts.size[1]}, "
+          f"seed {opts.seed}) in {scene}", flush=True)
+    generate_scene(scene, seed=opts.seed, frames=opts.frames, size=tuple(opts.size))
+    return scene
+
+
+class Proc:
+    """One child service process with its log file and status file."""
+
+    def __init__(self, name: str, argv: list[str], out: Path, env: dict):
+        self.name = name
+        self.status_file = out / "status" / f"{name}.json"
+        self.log_path = out / "logs" / f"{name}.log"
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        self.status_file.parent.mkdir(parents=True, exist_ok=True)
+        if self.status_file.exists():
+            self.status_file.unlink()
+        self.argv = argv + ["--status-file", str(self.status_file), "--exit-with-parent"]
+        self._log = open(self.log_path, "w")
+        self.popen = subprocess.Popen(self.argv, stdout=self._log, stderr=subprocess.STDOUT, env=env,
+                                      start_new_session=True)
+
+    @property
+    def rc(self) -> Optional[int]:
+        return self.popen.poll()
+
+    def status(self) -> dict:
+        try:
+            return json.loads(self.status_file.read_text())
+        except (OSError, ValueError):
+            return {}
+
+    def signal(self, sig: int) -> None:
+        if self.popen.poll() is None:
+            try:
+                self.popen.send_signal(sig)
+            except ProcessLookupError:
+                pass
+
+    def close(self) -> None:
+        self._log.close()
+
+    def tail(self, n: int = 15) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-n:])
+        except OSError:
+            return ""
+
+
+def _wait_ready(procs: list[Proc], timeout: float) -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        for p in procs:
+            if p.rc is not None:
+                raise RuntimeError(f"{p.name} exited with code {p.rc} during start-up:\n{p.tail()}")
+        if all(p.status_file.exists() for p in procs):
+            return
+        time.sleep(0.1)
+    missing = [p.name for p in procs if not p.status_file.exists()]
+    raise RuntimeError(f"{', '.join(missing)} did not start within {timeout:.0f} s (see {procs[0].log_path.parent})")
+
+
+def _progress(procs: dict[str, Proc], t0: float) -> str:
+    play = procs["play"].status() if "play" in procs else {}
+    pc = play.get("counters", {})
+    total = int(pc.get("frames_total", 0) or 0)
+    sent = int(pc.get("frames_sent", 0) or 0)
+    parts = [f"{time.monotonic() - t0:6.1f}s", f"play {sent}/{total or '?'}"]
+    m = procs["mapper"].status()
+    if m:
+        mc = m.get("counters", {})
+        parts.append(f"mapper acked {m.get('frame_seq', -1) + 1} windows {int(mc.get('windows', 0))} "
+                     f"v{int(mc.get('field_version', 0))} [{m.get('state', '?')}]")
+    if "tracker" in procs:
+        t = procs["tracker"].status()
+        tc = t.get("counters", {})
+        parts.append(f"tracker {int(tc.get('frames_tracked', 0))} tracked {int(tc.get('frames_lost', 0))} lost")
+    errs = sum(int(p.status().get("counters", {}).get("decode_errors", 0)) for p in procs.values())
+    if errs:
+        parts.append(f"decode errors {errs}")
+    return " | ".join(parts)
+
+
+def run_up(args) -> int:
+    """Run the system (see the module docstring); returns the exit code."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    mapper_cfg, tracker_cfg, opts = split_config(getattr(args, "config", None), out)
+    poses = args.poses
+    if poses not in ("tracker", "gt", "external"):
+        raise ValueError(f"--poses must be tracker, gt or external, got {poses!r}")
+    data = Path(args.data) if args.data else _scene(out, opts)
+    if not data.exists():
+        raise FileNotFoundError(f"dataset folder not found: {data}")
+    timeout = getattr(args, "timeout", None) or opts.timeout
+    ns = f"up{os.getpid()}"
+    mesh: list[str] = []  # endpoints of the processes started so far
+
+    def net() -> list[str]:
+        """Listen on a fresh loopback port and connect to every process started before (explicit mesh)."""
+        ep = f"tcp/127.0.0.1:{free_port()}"
+        argv = ["--listen", ep, "--ns", ns] + (["--connect", ",".join(mesh)] if mesh else [])
+        mesh.append(ep)
+        return argv
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parents[1])
+    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    py = [sys.executable, "-m"]
+    threads = ["--threads", str(opts.threads)] if opts.threads else []
+
+    mapper_argv = py + ["services.mapper", "--poses", poses, "--out", str(out)] + net() + threads
+    if mapper_cfg:
+        mapper_argv += ["--config", str(mapper_cfg)]
+    record_src = poses
+    procs: dict[str, Proc] = {}
+    t0 = time.monotonic()
+    old_handlers = {}
+
+    def on_signal(signum, frame):
+        raise KeyboardInterrupt
+
+    if threading_main():  # explicit: SIGINT may be ignored when started in the background
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old_handlers[sig] = signal.signal(sig, on_signal)
+    try:
+        procs["mapper"] = Proc("mapper", mapper_argv, out, env)
+        _wait_ready([procs["mapper"]], opts.start_timeout)
+        procs["record"] = Proc("record", py + ["services.io", "record", "--out", str(out / "record"),
+                                               "--source", record_src] + net(), out, env)
+        later = [procs["record"]]
+        if opts.view:
+            procs["view"] = Proc("view", py + ["services.io", "view", "--save", str(out / "run.rrd")] + net(), out,
+                                 env)
+            later.append(procs["view"])
+        if poses == "tracker":
+            targv = py + ["services.tracker"] + net() + threads
+            if tracker_cfg:
+                targv += ["--config", str(tracker_cfg)]
+            procs["tracker"] = Proc("tracker", targv, out, env)
+            later.append(procs["tracker"])
+        _wait_ready(later, opts.start_timeout)
+        wait_for = ["mapper", "record"] + (["view"] if opts.view else []) + (["tracker"] if poses == "tracker" else [])
+        play_start_timeout = opts.start_timeout
+        if poses == "external":
+            wait_for.append("external")
+            play_start_timeout = 3600.0
+            print("fmapping up: waiting for an external pose producer, e.g.\n"
+                  f"  {sys.executable} examples/publish_poses.py --traj TRAJ.txt --connect {mesh[0]} --ns {ns}",
+                  flush=True)
+        play_argv = py + ["services.io", "play", "--data", str(data), "--fps", str(args.fps or 0),
+                          "--window", str(opts.window), "--ack-from", "mapper", "--wait-for", ",".join(wait_for),
+                          "--start-timeout", str(play_start_timeout)] + net()
+        procs["play"] = Proc("play", play_argv, out, env)
+        return _monitor(procs, t0, timeout, out)
+    except KeyboardInterrupt:
+        print("\nfmapping up: interrupted, stopping the services ...", file=sys.stderr, flush=True)
+        return 130
+    finally:
+        _stop_all(procs, opts.grace, first=("play", "tracker", "mapper", "record", "view"))
+        for p in procs.values():
+            p.close()
+        for sig, h in old_handlers.items():
+            signal.signal(sig, h)
+
+
+def threading_main() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
+
+
+def _monitor(procs: dict[str, Proc], t0: float, timeout: Optional[float], out: Path) -> int:
+    tty = sys.stdout.isatty()
+    last_print = 0.0
+    while True:
+        now = time.monotonic()
+        if now - last_print >= (0.5 if tty else 5.0):
+            line = _progress(procs, t0)
+            print(("\r" + line + " " * 8) if tty else line, end="" if tty else "\n", flush=True)
+            last_print = now
+        rcs = {n: p.rc for n, p in procs.items()}
+        failed = {n: rc for n, rc in rcs.items() if rc not in (None, 0)}
+        if failed:
+            name, rc = next(iter(failed.items()))
+            print(f"\nfmapping up: {name} exited with code {rc}; last log lines:\n{procs[name].tail()}",
+                  file=sys.stderr, flush=True)
+            return 1
+        if all(rc == 0 for rc in rcs.values()):
+            break
+        if timeout is not None and now - t0 > timeout:
+            print(f"\nfmapping up: timed out after {timeout:.0f} s", file=sys.stderr, flush=True)
+            return 1
+        time.sleep(0.2)
+    if tty:
+        print()
+    summary = {"seconds": round(time.monotonic() - t0, 1), "outputs": {}}
+    for name in ("map.ply", "mesh.ply", "traj.txt", "stats.json", "run.rrd", "record/traj.txt", "record/points.ply"):
+        p = out / name
+        if p.exists():
+            summary["outputs"][name] = str(p)
+    summary["status"] = {n: {"state": p.status().get("state"), "frame_seq": p.status().get("frame_seq"),
+                             "counters": p.status().get("counters", {})} for n, p in procs.items()}
+    (out / "up.json").write_text(json.dumps(summary, indent=1, default=str))
+    print("fmapping up: done in %.1f s; outputs: %s" % (summary["seconds"], ", ".join(summary["outputs"].values())),
+          flush=True)
+    missing = [n for n in ("map.ply", "traj.txt") if n not in summary["outputs"]]
+    if missing:
+        print(f"fmapping up: missing outputs {missing} (see {out / 'logs'})", file=sys.stderr, flush=True)
+        return 1
+    return 0
+
+
+def _stop_all(procs: dict[str, Proc], grace: float, first: tuple) -> None:
+    """SIGINT to every running process (in ``first`` order), SIGKILL what is left after ``grace`` s."""
+    running = [procs[n] for n in first if n in procs and procs[n].rc is None]
+    if not running:
+        return
+    for p in running:
+        p.signal(signal.SIGINT)
+    end = time.monotonic() + grace
+    for p in running:
+        try:
+            p.popen.wait(timeout=max(0.1, end - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            print(f"fmapping up: {p.name} did not stop within {grace:.0f} s: killing it", file=sys.stderr, flush=True)
+            p.popen.kill()
+            p.popen.wait(timeout=5)

@@ -1,0 +1,548 @@
+"""Plumbing shared by the services: zenoh configuration and sessions, bounded inboxes,
+status counters and heartbeats, signal handling.
+
+Only ``services/`` imports zenoh; the library (``fmapping``) never does. Every service
+follows the same shape: zenoh callbacks do no work beyond copying the payload into a
+bounded, drop-oldest :class:`Inbox`; one worker loop (the main thread) decodes with
+:mod:`fmapping.protocol`, calls the library and publishes results. A message that fails
+to decode is counted (``decode_errors``) and logged (rate limited); it never reaches the
+service's state.
+
+Network defaults are explicit and container friendly: peer mode, multicast scouting off,
+loopback endpoints given on the command line (``--listen`` / ``--connect``), or a zenoh
+JSON5 config file (``--zenoh-config``) for anything else (TLS, access control, routers).
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import logging
+import os
+import signal
+import socket
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterable, Optional
+
+import yaml
+import zenoh
+
+from fmapping import protocol as P
+
+log = logging.getLogger("fmapping.services")
+
+
+# ---------------------------------------------------------------------------- configuration
+def _split(values: Optional[Iterable[str]]) -> list[str]:
+    out: list[str] = []
+    for v in values or []:
+        out += [x.strip() for x in str(v).split(",") if x.strip()]
+    return out
+
+
+def add_common_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """zenoh and service options every service accepts."""
+    g = p.add_argument_group("zenoh")
+    g.add_argument("--mode", choices=["peer", "client"], default=None, help="zenoh mode (default peer)")
+    g.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
+                   help="listen endpoint(s), e.g. tcp/127.0.0.1:7447 (repeat or comma-separate)")
+    g.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
+                   help="endpoint(s) to connect to, e.g. tcp/127.0.0.1:7447 or a router tcp/zenoh:7447")
+    g.add_argument("--multicast", action="store_true", default=None,
+                   help="enable multicast scouting (off by default: explicit endpoints work in containers and CI)")
+    g.add_argument("--zenoh-config", default=None, metavar="FILE",
+                   help="zenoh JSON5 config (native format, e.g. for TLS) or a YAML file with keys "
+                        "mode, listen, connect, multicast, namespace, options {json5/key/path: value}; "
+                        "command-line options override it")
+    g.add_argument("--ns", "--namespace", dest="ns", default=None,
+                   help="key-expression namespace: fmapping/<ns>/... (default $FMAPPING_NS or 'default')")
+    g = p.add_argument_group("service")
+    g.add_argument("--status-file", default=None, help="also write the status as JSON to this file (atomically)")
+    g.add_argument("--status-interval", type=float, default=0.5, help="heartbeat period in seconds")
+    g.add_argument("--exit-with-parent", action="store_true", help="stop when the parent process goes away")
+    g.add_argument("--log-level", default=os.environ.get("FMAPPING_LOG", "INFO"))
+    return p
+
+
+def _insert(conf: zenoh.Config, key: str, value: Any) -> None:
+    try:
+        conf.insert_json5(key, json.dumps(value))
+    except Exception as e:  # zenoh raises ZError with the offending key
+        raise ValueError(f"zenoh config: cannot set {key} = {value!r}: {e}") from None
+
+
+def zenoh_config(mode: str = "peer", listen: Optional[list[str]] = None, connect: Optional[list[str]] = None,
+                 multicast: bool = False, options: Optional[dict] = None,
+                 base: Optional[zenoh.Config] = None) -> zenoh.Config:
+    """A zenoh config with explicit endpoints; ``options`` maps JSON5 key paths to values."""
+    conf = base if base is not None else zenoh.Config()
+    if mode not in ("peer", "client", "router"):
+        raise ValueError(f"zenoh mode must be peer, client or router, got {mode!r}")
+    _insert(conf, "mode", mode)
+    _insert(conf, "scouting/multicast/enabled", bool(multicast))
+    if listen is not None:
+        _insert(conf, "listen/endpoints", list(listen))
+    if connect is not None:
+        _insert(conf, "connect/endpoints", list(connect))
+    for k, v in (options or {}).items():
+        _insert(conf, k, v)
+    return conf
+
+
+def resolve_network(args) -> dict:
+    """Merge --zenoh-config (YAML) and command-line options into mode/listen/connect/multicast/ns/options."""
+    net: dict[str, Any] = {"mode": "peer", "listen": None, "connect": None, "multicast": False,
+                           "ns": os.environ.get("FMAPPING_NS", "default"), "options": {}, "native": None}
+    path = getattr(args, "zenoh_config", None)
+    if path:
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"zenoh config not found: {path}")
+        if path.suffix in (".json5", ".json"):
+            net["native"] = str(path)
+        else:
+            try:
+                data = yaml.safe_load(path.read_text()) or {}
+            except yaml.YAMLError as e:
+                raise ValueError(f"{path}: invalid YAML: {e}") from None
+            if not isinstance(data, dict):
+                raise ValueError(f"{path}: expected a mapping at the top level")
+            unknown = set(data) - {"mode", "listen", "connect", "multicast", "namespace", "options"}
+            if unknown:
+                raise ValueError(f"{path}: unknown keys {sorted(unknown)} "
+                                 "(valid: mode, listen, connect, multicast, namespace, options)")
+            for k in ("mode", "multicast", "options"):
+                if k in data:
+                    net[k] = data[k]
+            for k in ("listen", "connect"):
+                if k in data:
+                    net[k] = _split(data[k] if isinstance(data[k], list) else [data[k]])
+            if "namespace" in data:
+                net["ns"] = str(data["namespace"])
+    if getattr(args, "mode", None):
+        net["mode"] = args.mode
+    if getattr(args, "listen", None):
+        net["listen"] = _split(args.listen)
+    if getattr(args, "connect", None):
+        net["connect"] = _split(args.connect)
+    if getattr(args, "multicast", None):
+        net["multicast"] = True
+    if getattr(args, "ns", None):
+        net["ns"] = args.ns
+    if net["mode"] == "peer" and net["listen"] is None and net["native"] is None:
+        net["listen"] = ["tcp/127.0.0.1:0"]  # loopback only, any free port, announced by gossip
+    if net["mode"] == "client":
+        net["listen"] = net["listen"] or []
+        # wait (up to 2 min) for the router instead of failing at once: containers start in any order
+        net["options"].setdefault("connect/timeout_ms", 120000)
+        net["options"].setdefault("connect/exit_on_failure", False)
+    return net
+
+
+def open_session(args) -> tuple[zenoh.Session, P.Keys]:
+    """Open the zenoh session described by the parsed arguments; returns (session, keys)."""
+    net = resolve_network(args)
+    keys = P.Keys(net["ns"])
+    base = zenoh.Config.from_file(net["native"]) if net["native"] else None
+    conf = zenoh_config(net["mode"], net["listen"], net["connect"], net["multicast"], net["options"], base=base)
+    log.debug("zenoh: mode=%s listen=%s connect=%s multicast=%s ns=%s",
+              net["mode"], net["listen"], net["connect"], net["multicast"], net["ns"])
+    return zenoh.open(conf), keys
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port free right now on ``host`` (small race window until someone binds it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def payload_bytes(sample) -> bytes:
+    """The payload of a zenoh Sample (or Reply.ok) as bytes."""
+    return sample.payload.to_bytes()
+
+
+def query_latest(session: zenoh.Session, key: str, timeout: float = 5.0, retry: float = 0.05) -> Optional[bytes]:
+    """Ask the queryable on ``key`` for its latest value; retry until ``timeout`` (a queryable
+    declared by a peer that just connected takes a moment to propagate). None if nobody answers."""
+    deadline = time.monotonic() + timeout
+    while True:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return None
+        for reply in session.get(key, timeout=max(0.05, min(left, 2.0))):
+            if reply.ok is not None:
+                return payload_bytes(reply.ok)
+        time.sleep(min(retry, max(0.0, deadline - time.monotonic())))
+
+
+def setup_logging(level: str = "INFO", name: str = "") -> None:
+    logging.basicConfig(level=getattr(logging, str(level).upper(), logging.INFO),
+                        format=f"%(asctime)s {name or '%(name)s'} %(levelname)s %(message)s", datefmt="%H:%M:%S")
+
+
+# ---------------------------------------------------------------------------- queues and counters
+class Counters:
+    """Thread-safe named counters (ints or floats)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._c: dict[str, float] = {}
+
+    def inc(self, name: str, n: float = 1) -> None:
+        with self._lock:
+            self._c[name] = self._c.get(name, 0) + n
+
+    def set(self, name: str, value: float) -> None:
+        with self._lock:
+            self._c[name] = value
+
+    def get(self, name: str, default: float = 0) -> float:
+        with self._lock:
+            return self._c.get(name, default)
+
+    def snapshot(self) -> dict:
+        with self._lock:
+            return dict(self._c)
+
+
+class Inbox:
+    """Bounded channels between zenoh callbacks and the worker, drop-oldest per channel.
+
+    ``get`` serves channels in the priority order given at construction (e.g. control
+    before poses before frames). Drops are counted as ``dropped_<channel>``.
+    """
+
+    def __init__(self, capacities: dict[str, int], counters: Optional[Counters] = None):
+        self._q = {name: collections.deque() for name in capacities}
+        self._cap = dict(capacities)
+        self._cond = threading.Condition()
+        self.counters = counters or Counters()
+
+    def put(self, channel: str, item: Any) -> bool:
+        """Append ``item``; returns False when the oldest item had to be dropped."""
+        with self._cond:
+            q = self._q[channel]
+            dropped = False
+            if len(q) >= self._cap[channel]:
+                q.popleft()
+                dropped = True
+            q.append(item)
+            self._cond.notify()
+        self.counters.inc(f"received_{channel}")
+        if dropped:
+            self.counters.inc(f"dropped_{channel}")
+        return not dropped
+
+    def get(self, timeout: Optional[float] = None) -> Optional[tuple[str, Any]]:
+        """(channel, item) of the highest-priority non-empty channel, or None after ``timeout``."""
+        with self._cond:
+            end = None if timeout is None else time.monotonic() + timeout
+            while True:
+                for name, q in self._q.items():
+                    if q:
+                        return name, q.popleft()
+                left = None if end is None else end - time.monotonic()
+                if left is not None and left <= 0:
+                    return None
+                self._cond.wait(left)
+
+    def size(self, channel: Optional[str] = None) -> int:
+        with self._cond:
+            return len(self._q[channel]) if channel else sum(len(q) for q in self._q.values())
+
+    def clear(self) -> None:
+        with self._cond:
+            for q in self._q.values():
+                q.clear()
+
+
+class ServiceInterrupted(BaseException):
+    """Raised in the main thread by the first SIGINT / SIGTERM while :attr:`Shutdown.interruptible`
+    is set (a long library call, e.g. a mapping window, must not delay shutdown by seconds)."""
+
+
+class Shutdown:
+    """A stop flag set by SIGINT / SIGTERM (and optionally by the parent process going away).
+
+    While ``interruptible`` is True the first signal also raises :class:`ServiceInterrupted`
+    in the main thread, aborting the call in progress; the service then writes what it has."""
+
+    def __init__(self, install: bool = True, watch_parent: bool = False):
+        self.event = threading.Event()
+        self.reason = ""
+        self.interruptible = False
+        self._parent = os.getppid() if watch_parent else None
+        if install and threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, self._handler)
+
+    def _handler(self, signum, _frame) -> None:
+        first = not self.event.is_set()
+        self.set(signal.Signals(signum).name)
+        if first and self.interruptible:
+            self.interruptible = False
+            raise ServiceInterrupted(self.reason)
+
+    def set(self, reason: str = "requested") -> None:
+        if not self.event.is_set():
+            self.reason = reason
+        self.event.set()
+
+    @property
+    def requested(self) -> bool:
+        if self._parent is not None and os.getppid() != self._parent:
+            self.set("parent exited")
+        return self.event.is_set()
+
+    def wait(self, timeout: float) -> bool:
+        return self.event.wait(timeout) or self.requested
+
+
+class RateLimitedLog:
+    """Log the first ``first`` events, then every ``every``-th (fuzzed inputs must not flood logs)."""
+
+    def __init__(self, logger: logging.Logger, first: int = 10, every: int = 1000):
+        self.logger, self.first, self.every, self.n = logger, first, every, 0
+
+    def __call__(self, msg: str, *args) -> None:
+        self.n += 1
+        if self.n <= self.first or self.n % self.every == 0:
+            self.logger.warning(msg + (f" [{self.n} so far]" if self.n > self.first else ""), *args)
+
+
+# ---------------------------------------------------------------------------- service shell
+class StatusBoard:
+    """The status of one service, built from its counters; thread safe."""
+
+    def __init__(self, service: str, counters: Optional[Counters] = None):
+        self.service = service
+        self.counters = counters or Counters()
+        self._lock = threading.Lock()
+        self._seq = 0
+        self.state = "starting"
+        self.frame_seq = -1
+        self.lag = 0.0
+        self.last_error = ""
+        self.started = time.time()
+
+    def error(self, text: str) -> None:
+        with self._lock:
+            self.last_error = str(text)[: P.MAX_STRING]
+
+    def update(self, state: Optional[str] = None, frame_seq: Optional[int] = None, lag: Optional[float] = None) -> None:
+        with self._lock:
+            if state is not None:
+                self.state = state
+            if frame_seq is not None:
+                self.frame_seq = max(self.frame_seq, int(frame_seq))
+            if lag is not None:
+                self.lag = float(lag)
+
+    def message(self) -> P.Status:
+        with self._lock:
+            self._seq += 1
+            counters = {k: v for k, v in self.counters.snapshot().items()}
+            counters["uptime"] = round(time.time() - self.started, 3)
+            return P.Status(service=self.service, seq=self._seq, time=time.time(), state=self.state,
+                            frame_seq=self.frame_seq, lag=self.lag, counters=counters, last_error=self.last_error)
+
+
+def status_to_dict(st: P.Status) -> dict:
+    return {"service": st.service, "seq": st.seq, "time": st.time, "state": st.state, "frame_seq": st.frame_seq,
+            "lag": st.lag, "counters": st.counters, "last_error": st.last_error, "pid": os.getpid()}
+
+
+def write_json_atomic(path, data: dict) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(data, indent=1, sort_keys=True, default=str))
+    os.replace(tmp, path)
+
+
+class Service:
+    """A zenoh session plus what every service needs: keys, publishers, an inbox fed by
+    subscriptions, a status heartbeat (published and optionally written to a file) and
+    signal handling. The worker loop stays in the concrete service."""
+
+    def __init__(self, name: str, args, capacities: Optional[dict[str, int]] = None,
+                 session: Optional[zenoh.Session] = None, keys: Optional[P.Keys] = None,
+                 install_signals: bool = True):
+        self.name = name
+        self.args = args
+        self.status = StatusBoard(name)
+        self.counters = self.status.counters
+        self.inbox = Inbox(capacities or {}, self.counters)
+        self.shutdown = Shutdown(install=install_signals, watch_parent=bool(getattr(args, "exit_with_parent", False)))
+        self.log = logging.getLogger(f"fmapping.{name}")
+        self.bad_input = RateLimitedLog(self.log)
+        self._own_session = session is None
+        if session is None:
+            session, keys = open_session(args)
+        self.session = session
+        self.keys = keys or P.Keys(getattr(args, "ns", None) or "default")
+        self._pubs: dict[str, Any] = {}
+        self._decls: list[Any] = []
+        self._hb_stop = threading.Event()
+        self._hb: Optional[threading.Thread] = None
+        self._closed = False
+
+    # -- publishing
+    def publisher(self, key: str, block: bool = True):
+        if key not in self._pubs:
+            cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+            self._pubs[key] = self.session.declare_publisher(key, congestion_control=cc)
+        return self._pubs[key]
+
+    def publish(self, key: str, msg: P.Message, block: bool = True) -> int:
+        data = P.encode(msg)
+        self.publisher(key, block).put(data)
+        self.counters.inc("published")
+        return len(data)
+
+    def publish_status(self) -> P.Status:
+        st = self.status.message()
+        try:
+            self.publisher(self.keys.status(self.name)).put(P.encode(st))
+        except Exception as e:  # a closed session during shutdown
+            self.log.debug("status publish failed: %s", e)
+        path = getattr(self.args, "status_file", None)
+        if path:
+            try:
+                write_json_atomic(path, status_to_dict(st))
+            except OSError as e:
+                self.log.warning("cannot write status file %s: %s", path, e)
+        return st
+
+    # -- subscribing
+    def subscribe(self, key: str, channel: str) -> None:
+        """Raw payloads on ``key`` go to inbox channel ``channel`` as (key, bytes)."""
+        inbox = self.inbox
+
+        def on_sample(sample) -> None:
+            inbox.put(channel, (str(sample.key_expr), payload_bytes(sample)))
+
+        self._decls.append(self.session.declare_subscriber(key, on_sample))
+
+    def subscribe_callback(self, key: str, fn: Callable[[str, bytes], None]) -> None:
+        def on_sample(sample) -> None:
+            try:
+                fn(str(sample.key_expr), payload_bytes(sample))
+            except Exception as e:  # never let a callback exception reach zenoh
+                self.counters.inc("callback_errors")
+                self.log.exception("callback on %s failed: %s", key, e)
+
+        self._decls.append(self.session.declare_subscriber(key, on_sample))
+
+    def queryable(self, key: str, answer: Callable[[], Optional[bytes]]) -> None:
+        """Answer queries on ``key`` with ``answer()`` (no reply when it returns None)."""
+
+        def on_query(query) -> None:
+            try:
+                data = answer()
+                if data is not None:
+                    query.reply(key, data)
+                    self.counters.inc("queries_answered")
+            except Exception as e:
+                self.counters.inc("callback_errors")
+                self.log.exception("query on %s failed: %s", key, e)
+
+        self._decls.append(self.session.declare_queryable(key, on_query))
+
+    def decode(self, data: bytes, expect: Optional[type] = None, where: str = "") -> Optional[P.Message]:
+        """Decode or count-and-log: returns None for a bad message (``decode_errors``)."""
+        try:
+            return P.decode(data, expect)
+        except P.ProtocolError as e:
+            self.counters.inc("decode_errors")
+            self.status.error(f"{where}: {e}" if where else str(e))
+            self.bad_input("bad message on %s: %s", where or "?", e)
+            return None
+
+    def addressed(self, ctl: P.Control) -> bool:
+        """Whether a Control message is for this service (no target or target == name)."""
+        target = ctl.args.get("target")
+        return target in (None, "", "all", self.name) or (isinstance(target, list) and self.name in target)
+
+    # -- heartbeat and lifetime
+    def start_heartbeat(self) -> None:
+        interval = float(getattr(self.args, "status_interval", 0.5) or 0.5)
+
+        def beat() -> None:
+            while not self._hb_stop.wait(interval):
+                self.shutdown.requested  # noqa: B018 - polls the parent watchdog
+                self.publish_status()
+
+        self._hb = threading.Thread(target=beat, name=f"{self.name}-heartbeat", daemon=True)
+        self._hb.start()
+
+    def close(self, state: str = "done") -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self._hb_stop.set()
+        if self._hb is not None:
+            self._hb.join(timeout=2.0)
+        self.status.update(state=state)
+        self.publish_status()
+        for d in self._decls + list(self._pubs.values()):
+            try:
+                d.undeclare()
+            except Exception:
+                pass
+        if self._own_session:
+            self.session.close()
+
+
+class Peers:
+    """The latest Status of every other service, with waiting helpers (flow control, start-up)."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._latest: dict[str, tuple[P.Status, float]] = {}
+
+    def update(self, st: P.Status) -> None:
+        with self._cond:
+            old = self._latest.get(st.service)
+            # keep the newest (status seq restarts when a service restarts: newer time wins)
+            if old is None or st.seq > old[0].seq or st.time > old[0].time:
+                self._latest[st.service] = (st, time.monotonic())
+            self._cond.notify_all()
+
+    def get(self, service: str) -> Optional[P.Status]:
+        with self._cond:
+            e = self._latest.get(service)
+            return e[0] if e else None
+
+    def age(self, service: str) -> float:
+        with self._cond:
+            e = self._latest.get(service)
+            return float("inf") if e is None else time.monotonic() - e[1]
+
+    def services(self) -> list[str]:
+        with self._cond:
+            return sorted(self._latest)
+
+    def wait(self, predicate: Callable[["Peers"], bool], timeout: float,
+             stop: Optional[threading.Event] = None) -> bool:
+        """Block until ``predicate(self)`` holds (re-checked on every status), the timeout or ``stop``."""
+        end = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                if predicate(self):
+                    return True
+                left = end - time.monotonic()
+                if left <= 0 or (stop is not None and stop.is_set()):
+                    return False
+                self._cond.wait(min(left, 0.1))
+
+    def acked(self, service: str) -> int:
+        st = self.get(service)
+        return -1 if st is None else st.frame_seq
+
+    def notify(self) -> None:
+        with self._cond:
+            self._cond.notify_all()

@@ -1,0 +1,1 @@
+"""Input / output services: ``play`` (dataset -> frames), ``view`` (bus -> rerun), ``record`` (bus -> files)."""

@@ -1,0 +1,243 @@
+"""``io play``: publish a dataset as Frame messages (and GT poses on ``poses/gt``).
+
+Pacing: with ``--fps F`` frames go out at F per second whatever the consumers do (they
+drop the oldest when they fall behind). With ``--fps 0`` (default) playback is as fast
+as the consumers keep up: at most ``--window`` frames are in flight beyond the newest
+frame acknowledged (``Status.frame_seq``) by every service in ``--ack-from``, however long
+they take while their heartbeat goes on; a consumer silent for ``--ack-timeout`` seconds
+no longer holds playback back (``ack_timeouts``).
+
+Before the first frame it waits (``--start-timeout``) until every service in
+``--wait-for`` has published a status, so nobody misses the start. A consumer that joins
+or restarts later (its status counter starts over) is not waited for on frames sent
+before it appeared. At the end it waits
+for the last acknowledgement, then publishes ``Control(stop, {reason: end, last_seq})``.
+Control: pause / resume / stop / reset (restart from the first frame; frame numbers
+keep increasing) / start (begin when launched with ``--paused``).
+"""
+from __future__ import annotations
+
+import argparse
+import threading
+import time
+from typing import Optional
+
+import numpy as np
+
+from fmapping import protocol as P
+from services.common import Peers, Service, add_common_args
+
+
+def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    p.add_argument("--data", required=True, help="dataset folder (any layout fmapping reads)")
+    p.add_argument("--camera", default=None, help="override intrinsics fx,fy,cx,cy[,k1,k2,p1,p2[,k3]]")
+    p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--fps", type=float, default=0.0, help="frames per second (0 = as fast as consumers keep up)")
+    p.add_argument("--window", type=int, default=4, help="frames in flight beyond the slowest acknowledgement")
+    p.add_argument("--ack-from", default="mapper", help="comma-separated services whose acknowledgements pace playback")
+    p.add_argument("--wait-for", default=None, help="services that must be up before the first frame (default: --ack-from)")
+    p.add_argument("--start-timeout", type=float, default=60.0)
+    p.add_argument("--ack-timeout", type=float, default=15.0, help="seconds without a status after which a consumer no longer paces playback")
+    p.add_argument("--loop", action="store_true", help="start over at the end (frame numbers keep increasing)")
+    p.add_argument("--paused", action="store_true", help="wait for a 'start' or 'resume' control before playing")
+    p.add_argument("--no-gt", action="store_true", help="do not publish ground-truth poses on poses/gt")
+    p.add_argument("--no-depth", action="store_true", help="do not send depth even when the dataset has it")
+    p.add_argument("--no-end-stop", action="store_true", help="do not send the end-of-sequence stop")
+    return add_common_args(p)
+
+
+def _names(text: Optional[str]) -> list[str]:
+    return [x.strip() for x in (text or "").split(",") if x.strip()]
+
+
+class Player:
+    """The playback loop; ``dataset`` is any :class:`fmapping.datasets.base.Dataset`."""
+
+    def __init__(self, svc: Service, dataset, args):
+        self.svc, self.ds, self.args = svc, dataset, args
+        self.peers = Peers()
+        self.ack_from = _names(args.ack_from)
+        self.wait_for = _names(args.wait_for) if args.wait_for is not None else list(self.ack_from)
+        self.paused = threading.Event()
+        if args.paused:
+            self.paused.set()
+        self.reset_requested = threading.Event()
+        self.stop_requested = threading.Event()
+        self.seq = -1  # last published frame number
+        self.floor: dict[str, int] = {}  # per consumer: newest frame sent before it (re)joined
+        svc.subscribe_callback(svc.keys.status(), self._on_status)
+        svc.subscribe_callback(svc.keys.control, self._on_control)
+
+    # -- callbacks (zenoh threads): small messages, decoded right here
+    def _on_status(self, key: str, data: bytes) -> None:
+        st = self.svc.decode(data, P.Status, key)
+        if st is not None and st.service != self.svc.name:
+            old = self.peers.get(st.service)
+            if old is None or st.seq < old.seq:
+                # first seen, or restarted: frames sent before cannot be acknowledged by it
+                self.floor[st.service] = self.seq
+                if old is not None:
+                    self.svc.counters.inc(f"restarts_{st.service}")
+            self.peers.update(st)
+
+    def _on_control(self, key: str, data: bytes) -> None:
+        ctl = self.svc.decode(data, P.Control, key)
+        if ctl is None or not self.svc.addressed(ctl):
+            return
+        self.svc.counters.inc(f"control_{ctl.command}")
+        if ctl.command == "pause":
+            self.paused.set()
+        elif ctl.command in ("resume", "start"):
+            self.paused.clear()
+        elif ctl.command == "stop" and ctl.args.get("reason") != "end":
+            self.stop_requested.set()
+        elif ctl.command == "reset":
+            self.reset_requested.set()
+        self.peers.notify()
+
+    # -- helpers
+    def _halt(self) -> bool:
+        return self.svc.shutdown.requested or self.stop_requested.is_set()
+
+    def _live(self, name: str) -> bool:
+        return self.peers.age(name) < self.args.ack_timeout
+
+    def _min_ack(self) -> Optional[int]:
+        acks = [max(self.peers.acked(n), self.floor.get(n, -1)) for n in self.ack_from if self._live(n)]
+        return min(acks) if acks else None
+
+    def wait_for_peers(self) -> bool:
+        if not self.wait_for:
+            return True
+        self.svc.log.info("waiting for %s", ", ".join(self.wait_for))
+        ok = self.peers.wait(lambda p: all(p.get(n) is not None for n in self.wait_for) or self._halt(),
+                             self.args.start_timeout, self.svc.shutdown.event)
+        if not ok or self._halt():
+            missing = [n for n in self.wait_for if self.peers.get(n) is None]
+            if missing:
+                self.svc.log.warning("no status from %s after %.0f s: playing anyway", missing, self.args.start_timeout)
+                self.svc.counters.inc("start_timeouts")
+        return not self._halt()
+
+    def _flow_control(self) -> None:
+        """Block until fewer than ``window`` frames are in flight (or the consumers went silent)."""
+        if not self.ack_from:
+            return
+        window = max(1, int(self.args.window))
+
+        def ready(p: Peers) -> bool:
+            m = self._min_ack()
+            return m is None or self.seq - m < window or self._halt() or self.paused.is_set() \
+                or self.reset_requested.is_set()
+
+        # no deadline while the consumers are alive (a long mapping window is not a failure);
+        # a consumer whose status is older than --ack-timeout drops out of _min_ack
+        before = [n for n in self.ack_from if self._live(n)]
+        while not self.peers.wait(ready, 1.0, self.svc.shutdown.event):
+            if self._halt():
+                return
+        gone = [n for n in before if not self._live(n)]
+        if gone:
+            self.svc.counters.inc("ack_timeouts")
+            self.svc.log.warning("no status from %s for %.0f s: no longer waiting for it", gone, self.args.ack_timeout)
+
+    def _wait_unpaused(self) -> None:
+        if self.paused.is_set():
+            self.svc.status.update(state="paused")
+            while self.paused.is_set() and not self._halt():
+                self.peers.wait(lambda p: not self.paused.is_set() or self._halt(), 0.5, self.svc.shutdown.event)
+            self.svc.status.update(state="running")
+
+    # -- main loop
+    def run(self) -> int:
+        svc, ds, a = self.svc, self.ds, self.args
+        n = len(ds)
+        if n == 0:
+            raise ValueError(f"{a.data}: dataset has no frames")
+        svc.status.update(state="waiting")
+        svc.counters.set("frames_total", n)
+        if not self.wait_for_peers():
+            return 0
+        svc.status.update(state="running")
+        ts = np.asarray(ds.timestamps, np.float64)
+        period = float(ts[-1] - ts[0]) + (float(np.median(np.diff(ts))) if n > 1 else 1.0)
+        loop, i = 0, 0
+        t_start = time.monotonic()
+        sent_at_start = 0
+        while not self._halt():
+            self._wait_unpaused()
+            if self._halt():
+                break
+            if self.reset_requested.is_set():
+                self.reset_requested.clear()
+                i, loop = 0, 0
+                svc.counters.inc("resets")
+                continue
+            if i >= n:
+                if not a.loop:
+                    break
+                i, loop = 0, loop + 1
+            if a.fps and a.fps > 0:
+                due = t_start + (self.seq + 1 - sent_at_start) / a.fps
+                delay = due - time.monotonic()
+                if delay > 0 and self.svc.shutdown.wait(delay):
+                    break
+                if delay < -1.0:  # fell far behind (slow disk): do not burst to catch up
+                    t_start, sent_at_start = time.monotonic(), self.seq + 1
+            else:
+                self._flow_control()
+                if self._halt() or self.paused.is_set() or self.reset_requested.is_set():
+                    continue
+            t0 = time.perf_counter()
+            f = ds[i]
+            seq = self.seq + 1
+            stamp = float(f.timestamp) + loop * period
+            msg = P.frame_from_dataset(f, seq=seq, with_depth=not a.no_depth)
+            msg.timestamp = stamp
+            if f.c2w is not None and not a.no_gt:
+                svc.publish(svc.keys.poses("gt"), P.Pose(seq=seq, timestamp=stamp,
+                                                         c2w=np.asarray(f.c2w, np.float64), source="gt"))
+                svc.counters.inc("gt_poses")
+            nbytes = svc.publish(svc.keys.frames, msg)
+            self.seq = seq
+            svc.counters.inc("frames_sent")
+            svc.counters.inc("bytes_sent", nbytes)
+            svc.counters.set("frame_index", i)
+            svc.counters.set("load_ms", round((time.perf_counter() - t0) * 1e3, 2))
+            m = self._min_ack()
+            svc.status.update(frame_seq=seq, lag=float(seq - m) if m is not None else 0.0)
+            i += 1
+        return self._finish()
+
+    def _finish(self) -> int:
+        svc, a = self.svc, self.args
+        if self.svc.shutdown.requested or self.stop_requested.is_set():
+            svc.log.info("stopped after %d frames", self.seq + 1)
+            return 0
+        if self.ack_from and self.seq >= 0:
+            svc.status.update(state="finishing")
+            while not self.peers.wait(lambda p: self._min_ack() is None or self._min_ack() >= self.seq
+                                      or self._halt(), 1.0, svc.shutdown.event):
+                pass
+        if not a.no_end_stop:
+            svc.publish(svc.keys.control, P.Control("stop", {"reason": "end", "last_seq": int(self.seq)}))
+        svc.log.info("end of sequence: %d frames sent", self.seq + 1)
+        return 0
+
+
+def main(argv=None, session=None, keys=None, dataset=None) -> int:
+    from services.common import setup_logging
+
+    args = add_args(argparse.ArgumentParser(prog="python -m services.io play", description=__doc__,
+                                            formatter_class=argparse.RawDescriptionHelpFormatter)).parse_args(argv)
+    setup_logging(args.log_level, "play")
+    if dataset is None:
+        from fmapping.datasets import open_dataset
+
+        dataset = open_dataset(args.data, camera=args.camera, max_frames=args.max_frames)
+    svc = Service("play", args, session=session, keys=keys, install_signals=session is None)
+    try:
+        svc.start_heartbeat()
+        return Player(svc, dataset, args).run()
+    finally:
+        svc.close("done")

@@ -1,0 +1,648 @@
+"""Mapper service core (zenoh-free): frames + poses in, field / points snapshots out.
+
+:class:`MapperCore` owns a :class:`fmapping.mapper.Mapper`. The shell
+(``python -m services.mapper``) feeds it raw payloads from the bus; the core decodes
+them (:mod:`fmapping.protocol`), matches frames and poses by frame number ``seq``, adds
+frames to the mapper in order and returns the messages to publish:
+
+* a :class:`~fmapping.protocol.FieldSnapshot` after every init / window / final update
+  (also kept encoded for the ``map/latest`` queryable),
+* the refined poses of the window frames as ``Pose(source="mapper")``,
+* a :class:`~fmapping.protocol.PointsSnapshot` at most every ``points_interval`` seconds
+  (and at the end).
+
+Pose sources: ``gt`` / ``external`` / ``tracker`` (key ``poses/<source>``). Before the map
+is initialised a frame may enter without a pose when ``unposed_init`` is on (the mapper
+guesses and optimises init poses; the default for ``tracker``, which cannot track before
+there is a map). A frame waits for its pose; when more than ``max_pending`` frames wait,
+the oldest is dropped (``frames_without_pose``), and so is a frame whose pose has not come
+within ``pose_timeout`` seconds (a dead or restarted producer). The acknowledgement (``ack``) is the
+newest frame number consumed (integrated or dropped): the player's flow control waits on it.
+
+Bad input (undecodable payload, a frame whose size or intrinsics differ from the first
+frame's) is counted and never changes the state. The state is checkpointed atomically
+(``torch.save`` to a temp file, fsync, rename) every ``checkpoint_every`` windows and
+restored with ``torch.load(weights_only=True)``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from fmapping import protocol as P
+
+log = logging.getLogger("fmapping.mapper")
+
+POSE_SOURCES = ("tracker", "gt", "external")
+CHECKPOINT_VERSION = 1
+
+
+@dataclass
+class MapperServiceOptions:
+    pose_source: str = "gt"
+    out: Optional[str] = None  # where map.ply, mesh.ply, traj.txt, stats.json go at the end
+    checkpoint: Optional[str] = None  # default OUT/checkpoint.pt when out is set
+    checkpoint_every: int = 1  # windows between checkpoints (0 = never)
+    resume: bool = True
+    keep_checkpoint: bool = False  # keep it after a completed run
+    unposed_init: Optional[bool] = None  # default: True for the tracker source
+    anchor_source: Optional[str] = None  # poses fixing the first frames (scale) before init; default gt for tracker
+    anchor_frames: int = 2
+    points_interval: float = 2.0  # seconds between PointsSnapshots
+    max_points: int = 100_000  # per PointsSnapshot
+    final_points: int = 500_000  # map.ply
+    max_pending: int = 64  # frames waiting for their pose
+    pose_timeout: float = 30.0  # seconds a frame waits for its pose before it is skipped (0 = forever)
+    max_poses: int = 4096  # poses waiting for their frame
+    publish_mapper_poses: bool = True
+    write_mesh: bool = True
+    mesh_resolution: int = 96  # marching-cubes grid per axis
+
+    def validate(self) -> "MapperServiceOptions":
+        if self.pose_source not in POSE_SOURCES:
+            raise ValueError(f"pose source must be one of {', '.join(POSE_SOURCES)}, got {self.pose_source!r}")
+        if self.max_pending < 1 or self.max_poses < 1:
+            raise ValueError("max_pending and max_poses must be >= 1")
+        if self.unposed_init is None:
+            self.unposed_init = self.pose_source == "tracker"
+        if self.anchor_source is None:
+            self.anchor_source = "gt" if self.pose_source == "tracker" else ""
+        if self.anchor_source == self.pose_source:
+            self.anchor_source = ""
+        return self
+
+
+class _Counters:
+    """Minimal counters when the shell does not pass its own (same interface as services.common.Counters)."""
+
+    def __init__(self) -> None:
+        self.c: dict[str, float] = {}
+
+    def inc(self, name: str, n: float = 1) -> None:
+        self.c[name] = self.c.get(name, 0) + n
+
+    def set(self, name: str, value: float) -> None:
+        self.c[name] = value
+
+    def get(self, name: str, default: float = 0) -> float:
+        return self.c.get(name, default)
+
+    def snapshot(self) -> dict:
+        return dict(self.c)
+
+
+Output = tuple[str, Any]  # (channel, message): channel in field | points | poses
+
+
+class MapperCore:
+    """See the module docstring. Single-threaded: call it from one worker thread."""
+
+    def __init__(self, cfg, opts: Optional[MapperServiceOptions] = None, counters=None, device=None,
+                 on_bad_input=None, clock=time.monotonic):
+        from fmapping.mapper import MapperConfig
+
+        self.clock = clock  # for the pose timeout (injectable in tests)
+        self._arrived: dict[int, float] = {}
+        self.on_bad_input = on_bad_input  # called with a one-line description of each rejected input
+        self.cfg = cfg if cfg is not None else MapperConfig()
+        self.opts = (opts or MapperServiceOptions()).validate()
+        self.counters = counters if counters is not None else _Counters()
+        self.device = device
+        self.mapper = None
+        self.camera_dict: Optional[dict] = None
+        self.frames: "OrderedDict[int, P.Frame]" = OrderedDict()
+        self.poses: dict[int, P.Pose] = {}
+        self.anchors: dict[int, P.Pose] = {}
+        self.seq_of_fid: list[int] = []
+        self.last_seq = -1  # newest frame integrated or dropped (the acknowledgement)
+        self.version = 0
+        self.windows = 0
+        self.latest_field: Optional[P.FieldSnapshot] = None
+        self.latest_field_bytes: Optional[bytes] = None
+        self.latest_points: Optional[P.PointsSnapshot] = None
+        self.interrupted = False  # set by the shell when a signal aborted an update half-way
+        self.paused = False
+        self.finished = False
+        self.last_error = ""
+        self._last_points = time.monotonic()  # the first points snapshot comes one interval after start
+        self._points_dirty = False
+        self.resumed_from: Optional[str] = None
+        self._newest_ts = float("-inf")
+        self._acked_ts = float("-inf")
+        out = Path(self.opts.out) if self.opts.out else None
+        self.out = out
+        ck = self.opts.checkpoint or (str(out / "checkpoint.pt") if out else None)
+        self.checkpoint_path = Path(ck) if ck else None
+
+    # ------------------------------------------------------------ inputs
+    @property
+    def ack(self) -> int:
+        return self.last_seq
+
+    @property
+    def lag(self) -> float:
+        """Seconds (of sequence time) between the newest frame received and the newest integrated."""
+        if not np.isfinite(self._newest_ts) or not np.isfinite(self._acked_ts):
+            return 0.0
+        return max(0.0, self._newest_ts - self._acked_ts)
+
+    def handle(self, channel: str, data: bytes, key: str = "") -> list[Output]:
+        """Decode and apply one payload from ``channel`` (frames | poses | control). A payload that
+        fails to decode is counted (``decode_errors``), reported to ``on_bad_input`` and ignored."""
+        expect = {"frames": P.Frame, "poses": P.Pose, "control": P.Control}.get(channel)
+        if expect is None:
+            raise ValueError(f"MapperCore.handle: unknown channel {channel!r}")
+        try:
+            msg = P.decode(data, expect)
+        except P.ProtocolError as e:
+            self.counters.inc("decode_errors")
+            self.last_error = f"{key or channel}: {e}"
+            if self.on_bad_input is not None:
+                self.on_bad_input(self.last_error)
+            return []
+        return self.apply(msg)
+
+    def apply(self, msg: P.Message) -> list[Output]:
+        if isinstance(msg, P.Frame):
+            return self.on_frame(msg)
+        if isinstance(msg, P.Pose):
+            return self.on_pose(msg)
+        if isinstance(msg, P.Control):
+            return self.on_control(msg)
+        raise ValueError(f"MapperCore: unexpected message {type(msg).__name__}")
+
+    def on_frame(self, f: P.Frame) -> list[Output]:
+        if self.camera_dict is None:
+            self.camera_dict = dict(f.camera)
+        elif f.camera != self.camera_dict:
+            self._reject(f"frame {f.seq}: camera {f.camera} differs from the first frame's {self.camera_dict}")
+            return []
+        if f.seq <= self.last_seq or f.seq in self.frames:
+            self.counters.inc("stale_frames")
+            return []
+        self.frames[f.seq] = f
+        self._arrived[f.seq] = self.clock()
+        self._newest_ts = max(self._newest_ts, f.timestamp)
+        self.counters.inc("frames_received")
+        if len(self.frames) > 1 and f.seq < next(reversed(self.frames)):
+            self.frames = OrderedDict(sorted(self.frames.items()))
+        return self._integrate()
+
+    def on_pose(self, p: P.Pose) -> list[Output]:
+        if p.source and p.source == self.opts.anchor_source:
+            if len(self.seq_of_fid) < self.opts.anchor_frames and p.seq > self.last_seq:
+                self.anchors[p.seq] = p
+                while len(self.anchors) > self.opts.max_poses:
+                    self.anchors.pop(min(self.anchors))
+                self.counters.inc("anchor_poses")
+                return self._integrate()
+            return []
+        if p.source != self.opts.pose_source:
+            self.counters.inc("ignored_poses")
+            return []
+        if p.seq <= self.last_seq:
+            self.counters.inc("stale_poses")
+            return []
+        self.poses[p.seq] = p
+        self.counters.inc("poses_received")
+        while len(self.poses) > self.opts.max_poses:
+            self.poses.pop(min(self.poses))
+            self.counters.inc("dropped_poses")
+        return self._integrate()
+
+    def on_control(self, c: P.Control) -> list[Output]:
+        self.counters.inc(f"control_{c.command}")
+        if c.command == "pause":
+            self.paused = True
+        elif c.command in ("resume", "start"):
+            self.paused = False
+            return self._integrate()
+        elif c.command == "reset":
+            self.reset()
+        elif c.command == "save":
+            self.save_checkpoint()
+            if self.out is not None:
+                self.write_outputs(final=False)
+        elif c.command == "stop":
+            return self.finish()
+        return []
+
+    def _reject(self, why: str) -> None:
+        self.counters.inc("rejected_frames")
+        self.last_error = why
+        if self.on_bad_input is not None:
+            self.on_bad_input(why)
+
+    # ------------------------------------------------------------ mapping
+    def _ensure_mapper(self) -> None:
+        if self.mapper is None:
+            from fmapping.camera import PinholeCamera
+            from fmapping.mapper import Mapper
+
+            self.mapper = Mapper(self.cfg, PinholeCamera.from_dict(self.camera_dict), device=self.device)
+
+    def _integrate(self) -> list[Output]:
+        out: list[Output] = []
+        while self.frames and not self.paused and not self.finished:
+            seq, frame = next(iter(self.frames.items()))
+            pose = self.poses.pop(seq, None)
+            initialized = self.mapper is not None and self.mapper.initialized
+            unposed_ok = self.opts.unposed_init and not initialized
+            if pose is not None and pose.quality is not None and pose.quality <= 0.0:
+                # the producer says this pose is unusable (e.g. the tracker lost the frame)
+                self.counters.inc("unusable_poses")
+                if not unposed_ok:
+                    self.frames.popitem(last=False)
+                    self.counters.inc("frames_skipped")
+                    self.last_seq = max(self.last_seq, seq)
+                    continue
+                pose = None
+            if pose is None and unposed_ok and len(self.seq_of_fid) < self.opts.anchor_frames:
+                pose = self.anchors.pop(seq, None)
+            if pose is None and not unposed_ok:
+                waited = self.clock() - self._arrived.get(seq, self.clock())
+                timed_out = self.opts.pose_timeout > 0 and waited > self.opts.pose_timeout
+                if len(self.frames) > self.opts.max_pending or timed_out:
+                    self.frames.popitem(last=False)
+                    self.counters.inc("frames_without_pose")
+                    if timed_out:
+                        self.counters.inc("pose_timeouts")
+                    self.last_seq = max(self.last_seq, seq)
+                    continue
+                break
+            self.frames.popitem(last=False)
+            out += self._add(frame, pose)
+        for d in (self.poses, self.anchors, self._arrived):
+            for s in [s for s in d if s <= self.last_seq]:
+                del d[s]
+        if self.mapper is not None and self.mapper.initialized:
+            self.anchors.clear()
+        return out
+
+    def _add(self, f: P.Frame, pose: Optional[P.Pose]) -> list[Output]:
+        self._ensure_mapper()
+        t0 = time.perf_counter()
+        try:
+            stats = self.mapper.add_frame(np.array(f.rgb), None if pose is None else np.array(pose.c2w),
+                                          timestamp=f.timestamp, depth=None if f.depth is None else np.array(f.depth))
+        except ValueError as e:  # the library refused this frame: count it, keep going
+            self._reject(f"frame {f.seq}: {e}")
+            self.last_seq = max(self.last_seq, f.seq)
+            return []
+        self.seq_of_fid.append(f.seq)
+        self.last_seq = max(self.last_seq, f.seq)
+        self._acked_ts = f.timestamp
+        self.counters.inc("frames_processed")
+        self.counters.inc("frames_unposed" if pose is None else "frames_posed")
+        if stats is None:
+            return []
+        now = self.clock()  # the update kept us from reading poses: pending frames start waiting afresh
+        for s in self._arrived:
+            self._arrived[s] = now
+        self.counters.set("last_window_s", round(time.perf_counter() - t0, 3))
+        return self._after_update(stats)
+
+    def _after_update(self, stats, points: bool = True) -> list[Output]:
+        self.windows += 1
+        self.counters.set("windows", self.windows)
+        self.counters.inc(f"updates_{stats.kind}")
+        self.counters.set("last_loss", float(stats.loss) if np.isfinite(stats.loss) else -1.0)
+        out: list[Output] = []
+        snap = self.field_snapshot()
+        if snap is not None:
+            out.append(("field", snap))
+        if self.opts.publish_mapper_poses:
+            out += [("poses", p) for p in self.window_poses()]
+        self._points_dirty = True
+        if points and time.monotonic() - self._last_points >= self.opts.points_interval:
+            pts = self.points_snapshot(self.opts.max_points)
+            if pts is not None:
+                out.append(("points", pts))
+        if self.opts.checkpoint_every > 0 and self.windows % self.opts.checkpoint_every == 0:
+            self.save_checkpoint()
+        return out
+
+    def tick(self) -> list[Output]:
+        """Periodic work: frames whose pose timed out move on; a points snapshot when the map
+        changed and the interval passed."""
+        out = self._integrate() if self.frames else []
+        if self._points_dirty and time.monotonic() - self._last_points >= self.opts.points_interval:
+            pts = self.points_snapshot(self.opts.max_points)
+            if pts is not None:
+                out.append(("points", pts))
+        return out
+
+    def finish(self) -> list[Output]:
+        """Integrate what can be, run the mapper's closing stage, write outputs; idempotent."""
+        if self.finished:
+            return []
+        out: list[Output] = []
+        self.paused = False
+        out += self._integrate()
+        if self.frames:  # frames still without a pose: they cannot be mapped
+            self.counters.inc("frames_without_pose", len(self.frames))
+            self.last_seq = max(self.last_seq, max(self.frames))
+            self.frames.clear()
+        if self.mapper is not None:
+            stats = self.mapper.finish()
+            if stats is not None:
+                out += self._after_update(stats, points=False)
+        self.finished = True
+        if self.mapper is not None and self.mapper.field is not None:
+            pts = self.points_snapshot(self.opts.max_points)
+            if pts is not None:
+                out.append(("points", pts))
+        if self.out is not None:
+            self.write_outputs(final=True)
+        if self.checkpoint_path is not None and self.checkpoint_path.exists() and not self.opts.keep_checkpoint:
+            self.checkpoint_path.unlink()
+        return out
+
+    def reset(self) -> None:
+        """Forget the map and pending inputs (frame numbers already consumed stay consumed)."""
+        self.mapper = None
+        self.camera_dict = None
+        self.frames.clear()
+        self.poses.clear()
+        self.anchors.clear()
+        self._arrived.clear()
+        self.seq_of_fid = []
+        self.latest_field = None
+        self.latest_points = None
+        self.latest_field_bytes = None
+        self.finished = False
+        self.counters.inc("resets")
+
+    # ------------------------------------------------------------ outputs
+    def field_snapshot(self, bump: bool = True) -> Optional[P.FieldSnapshot]:
+        """The current field as a FieldSnapshot (a new version unless ``bump`` is False); kept for queries."""
+        m = self.mapper
+        if m is None or m.field is None:
+            return None
+        if bump:
+            self.version += 1
+        arrays = {k: np.ascontiguousarray(v) for k, v in m.field.snapshot().items()}
+        cfg = self.cfg
+        config = {"field": _plain(dataclasses.asdict(cfg.field)), "near": cfg.near, "far": cfg.far,
+                  "n_coarse": cfg.n_coarse, "n_fine": cfg.n_fine, "camera": self.camera_dict}
+        last_fid = len(self.seq_of_fid) - 1
+        poses = m.frame_poses() if last_fid >= 0 else {}
+        snap = P.FieldSnapshot(version=self.version, kind=cfg.field.kind, config=config,
+                               aabb=m.aabb.detach().cpu().numpy().astype(np.float64), arrays=arrays,
+                               frame_seq=self.seq_of_fid[-1] if self.seq_of_fid else -1, timestamp=time.time(),
+                               frame_c2w=_rigid(poses[last_fid]) if last_fid in poses else None)
+        data = P.encode(snap)
+        self.latest_field, self.latest_field_bytes = snap, data
+        self.counters.set("field_version", self.version)
+        self.counters.set("field_bytes", len(data))
+        return snap
+
+    def window_poses(self) -> list[P.Pose]:
+        m = self.mapper
+        poses = m.frame_poses()
+        stamps = m.frame_timestamps()
+        out = []
+        for fid in m.window_ids():
+            if 0 <= fid < len(self.seq_of_fid) and fid in poses:
+                out.append(P.Pose(seq=self.seq_of_fid[fid], timestamp=float(stamps.get(fid, 0.0)),
+                                  c2w=_rigid(poses[fid]), source="mapper"))
+        return out
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray, list[int]]:
+        """(timestamps, c2w (N, 4, 4), frame numbers) of every mapped frame, in order."""
+        if self.mapper is None:
+            return np.zeros(0), np.zeros((0, 4, 4)), []
+        poses, stamps = self.mapper.frame_poses(), self.mapper.frame_timestamps()
+        fids = sorted(poses)
+        return (np.array([stamps[i] for i in fids]), np.stack([poses[i] for i in fids]) if fids else np.zeros((0, 4, 4)),
+                [self.seq_of_fid[i] for i in fids if i < len(self.seq_of_fid)])
+
+    def points_snapshot(self, max_points: int) -> Optional[P.PointsSnapshot]:
+        if self.mapper is None or self.mapper.field is None:
+            return None
+        t0 = time.perf_counter()
+        pts, cols = map_points(self.mapper, max_points)
+        self._last_points = time.monotonic()
+        self._points_dirty = False
+        self.counters.set("points", len(pts))
+        self.counters.set("points_ms", round((time.perf_counter() - t0) * 1e3, 1))
+        self.latest_points = P.PointsSnapshot(version=self.version, points=pts, colors=cols, frame_seq=self.last_seq)
+        return self.latest_points
+
+    def write_outputs(self, final: bool = True, quick: bool = False) -> dict:
+        """OUT/map.ply (points), OUT/mesh.ply, OUT/traj.txt, OUT/stats.json. ``quick`` (on a signal):
+        the cheap live-snapshot points and no mesh, to stop within seconds."""
+        from fmapping.ply import write_ply
+        from fmapping.trajectory import write_tum_trajectory
+
+        out = self.out
+        out.mkdir(parents=True, exist_ok=True)
+        files = {}
+        ts, c2w, seqs = self.trajectory()
+        if len(ts):
+            files["traj"] = str(write_tum_trajectory(out / "traj.txt", ts, c2w))
+        if self.mapper is not None and self.mapper.field is not None:
+            last = self.latest_points
+            if quick and (last is not None and last.version == self.version or self.interrupted):
+                # stopping on a signal: the newest live snapshot costs nothing (none yet: no map file)
+                pts, cols = (last.points, last.colors) if last is not None else (None, None)
+            else:
+                pts, cols = map_points(self.mapper, self.opts.final_points, final=not quick, quick=quick)
+            if pts is not None:
+                files["map"] = str(write_ply(out / "map.ply", pts, cols))
+            if self.opts.write_mesh and not quick:
+                v, f, c = map_mesh(self.mapper, self.opts.mesh_resolution)
+                files["mesh"] = str(write_ply(out / "mesh.ply", v, c, faces=f))
+        stats = {"final": final, "frames": len(seqs), "field_version": self.version, "files": files,
+                 "counters": self.counters.snapshot(), "pose_source": self.opts.pose_source,
+                 "resumed_from": self.resumed_from}
+        if self.mapper is not None:
+            stats["mapper"] = self.mapper.stats()
+        tmp = out / ".stats.json.tmp"
+        tmp.write_text(json.dumps(stats, indent=1, default=_json_default))
+        os.replace(tmp, out / "stats.json")
+        return files
+
+    # ------------------------------------------------------------ checkpoints
+    def save_checkpoint(self) -> Optional[Path]:
+        """torch.save of the mapper state + the service's bookkeeping: temp file, fsync, rename."""
+        if self.checkpoint_path is None or self.mapper is None:
+            return None
+        import torch
+
+        t0 = time.perf_counter()
+        path = self.checkpoint_path
+        path.parent.mkdir(parents=True, exist_ok=True)
+        state = {
+            "version": CHECKPOINT_VERSION,
+            "mapper": self.mapper.state_dict(),
+            "service": {"seq_of_fid": list(self.seq_of_fid), "last_seq": int(self.last_seq),
+                        "version": int(self.version), "windows": int(self.windows),
+                        "camera": dict(self.camera_dict), "pose_source": self.opts.pose_source},
+        }
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        with open(tmp, "wb") as fh:
+            torch.save(state, fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+        try:  # make the rename itself durable
+            dfd = os.open(path.parent, os.O_RDONLY)
+            try:
+                os.fsync(dfd)
+            finally:
+                os.close(dfd)
+        except OSError:
+            pass
+        self.counters.inc("checkpoints")
+        self.counters.set("checkpoint_ms", round((time.perf_counter() - t0) * 1e3, 1))
+        return path
+
+    def load_checkpoint(self, path=None) -> bool:
+        """Resume from a checkpoint (weights_only load); False when there is none."""
+        import torch
+
+        from fmapping.camera import PinholeCamera
+        from fmapping.mapper import Mapper
+
+        path = Path(path) if path else self.checkpoint_path
+        if path is None or not path.is_file():
+            return False
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as e:
+            raise ValueError(f"{path}: not a readable mapper checkpoint: {e}") from None
+        if not isinstance(state, dict) or state.get("version") != CHECKPOINT_VERSION:
+            raise ValueError(f"{path}: not a mapper checkpoint of version {CHECKPOINT_VERSION}")
+        svc = state["service"]
+        if svc.get("pose_source") != self.opts.pose_source:
+            log.warning("checkpoint %s was made with pose source %s, now %s", path, svc.get("pose_source"),
+                        self.opts.pose_source)
+        mapper = Mapper(self.cfg, PinholeCamera.from_dict(svc["camera"]), device=self.device)
+        mapper.load_state_dict(state["mapper"])
+        self.mapper = mapper
+        self.camera_dict = dict(svc["camera"])
+        self.seq_of_fid = [int(s) for s in svc["seq_of_fid"]]
+        self.last_seq = int(svc["last_seq"])
+        self.version = int(svc["version"])
+        self.windows = int(svc["windows"])
+        self.resumed_from = str(path)
+        self.counters.set("resumed_at_seq", self.last_seq)
+        if mapper.field is not None:
+            self.field_snapshot(bump=False)
+        return True
+
+
+# ---------------------------------------------------------------------------- map export
+def map_points(mapper, max_points: int, final: bool = False, quick: bool = False,
+               seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Coloured points of the map (:func:`fmapping.export.export_point_cloud`), at most ``max_points``.
+
+    Live snapshots render up to 6 keyframes at <= 64 px width (cheap; ``quick``: 4 at 48 px,
+    for stopping on a signal); ``final`` renders every keyframe at full resolution (stride 2)
+    with the input images for colour. Returns float32 (N, 3), uint8 (N, 3)."""
+    from fmapping.export import export_point_cloud
+
+    cfg = mapper.cfg
+    poses = mapper.frame_poses()
+    ids = mapper.keyframe_ids() or sorted(poses)
+    cam = mapper.camera
+    images = None
+    check_views = 8
+    if final:
+        stride, voxel = 2, 0.02
+        try:
+            images = {i: mapper.keyframe_image(i) for i in ids}
+        except KeyError:
+            images = None
+    else:
+        views, width = (4, 48.0) if quick else (6, 64.0)
+        if len(ids) > views:
+            ids = [ids[int(round(i))] for i in np.linspace(0, len(ids) - 1, views)]
+        scale = min(1.0, width / cam.width)
+        cam = cam.scaled(scale) if scale < 1.0 else cam
+        stride, voxel, check_views = 1, 0.03, views - 1
+    pts, cols = export_point_cloud(mapper, {i: poses[i] for i in ids}, cam, images=images, stride=stride,
+                                   voxel=voxel, near=cfg.near, far=cfg.far, n_samples=cfg.n_coarse,
+                                   n_importance=cfg.n_fine, check_views=max(1, check_views))
+    return _bounded(np.asarray(pts, np.float32).reshape(-1, 3), np.asarray(cols).reshape(-1, 3), max_points, seed)
+
+
+def map_mesh(mapper, resolution: int = 96):
+    """(vertices, faces, colours) by marching cubes (:func:`fmapping.export.export_mesh`), culled to
+    what the keyframes saw."""
+    from fmapping.export import export_mesh
+
+    cfg = mapper.cfg
+    poses = mapper.frame_poses()
+    ids = mapper.keyframe_ids() or sorted(poses)
+
+    def render(c2w, cam):
+        r = mapper.render(c2w, cam, samples=(cfg.n_coarse, cfg.n_fine))
+        acc = r["acc"]
+        return {"rgb": r["rgb"], "acc": acc, "depth": np.where(acc > 1e-6, r["depth"] / np.maximum(acc, 1e-6), 0.0)}
+
+    v, f, c = export_mesh(mapper.field, mapper.aabb, resolution, {i: poses[i] for i in ids}, mapper.camera,
+                          render=render, near=cfg.near, far=cfg.far)
+    return np.asarray(v), np.asarray(f), np.asarray(c)
+
+
+def _bounded(pts: np.ndarray, cols: np.ndarray, max_points: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    cols = np.asarray(cols)
+    if cols.dtype != np.uint8:
+        cols = np.clip(np.round(cols * 255 if cols.max(initial=0) <= 1.0 else cols), 0, 255).astype(np.uint8)
+    ok = np.isfinite(pts).all(1)
+    pts, cols = pts[ok], cols[ok]
+    limit = min(int(max_points), P.MAX_POINTS)
+    if len(pts) > limit:
+        idx = np.sort(np.random.default_rng(seed).choice(len(pts), limit, replace=False))
+        pts, cols = pts[idx], cols[idx]
+    return np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(cols.reshape(-1, 3), np.uint8)
+
+
+def _rigid(m: np.ndarray) -> np.ndarray:
+    """Re-orthonormalise a float pose (snapshots must pass the protocol's rotation check)."""
+    m = np.array(m, np.float64)
+    u, _, vt = np.linalg.svd(m[:3, :3])
+    r = u @ vt
+    if np.linalg.det(r) < 0:
+        u[:, -1] *= -1
+        r = u @ vt
+    m[:3, :3] = r
+    m[3] = [0, 0, 0, 1]
+    return m
+
+
+def _plain(x):
+    if isinstance(x, dict):
+        return {k: _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    return x
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def load_mapper_config(path=None, overrides: Optional[dict] = None):
+    """MapperConfig from YAML (``fmapping.config.load_config``)."""
+    from fmapping.config import load_config
+    from fmapping.mapper import MapperConfig
+
+    return load_config(MapperConfig(), path, overrides)

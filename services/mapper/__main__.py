@@ -1,0 +1,171 @@
+"""``python -m services.mapper``: the mapping process (zenoh shell around :class:`services.mapper.MapperCore`).
+
+Subscribes to ``frames``, ``poses/<source>`` and ``control``; publishes ``map/field`` after
+every mapper update, ``map/points`` at a bounded rate, ``poses/mapper`` (refined window
+poses) and ``status/mapper``; answers ``map/latest`` with the newest FieldSnapshot.
+Resumes from ``--checkpoint`` (default OUT/checkpoint.pt) when present.
+
+On the end-of-sequence stop it runs the mapper's closing stage, writes OUT/map.ply,
+OUT/mesh.ply, OUT/traj.txt, OUT/stats.json, publishes the final snapshots and exits.
+On SIGINT / SIGTERM it skips the closing optimisation and writes the same files from the
+current map (and a checkpoint) before exiting.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from fmapping import protocol as P
+from services.common import Service, ServiceInterrupted, add_common_args, setup_logging
+from services.mapper import POSE_SOURCES, MapperCore, MapperServiceOptions, load_mapper_config
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m services.mapper", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--poses", default="gt", choices=POSE_SOURCES, help="pose source: key poses/<source>")
+    p.add_argument("--config", default=None, help="YAML overrides of the mapper config (fmapping.mapper.MapperConfig)")
+    p.add_argument("--field", default=None, choices=["cp", "vm", "mlp", "grid"])
+    p.add_argument("--out", default=None, help="output folder for map.ply, mesh.ply, traj.txt, stats.json, checkpoint.pt")
+    p.add_argument("--checkpoint", default=None, help="checkpoint file (default OUT/checkpoint.pt)")
+    p.add_argument("--checkpoint-every", type=int, default=1, help="windows between checkpoints (0 = never)")
+    p.add_argument("--no-resume", action="store_true", help="ignore an existing checkpoint")
+    p.add_argument("--keep-checkpoint", action="store_true", help="keep the checkpoint after a completed run")
+    p.add_argument("--points-interval", type=float, default=2.0, help="min seconds between map point snapshots")
+    p.add_argument("--max-points", type=int, default=100_000, help="points per snapshot")
+    p.add_argument("--unposed-init", choices=["auto", "yes", "no"], default="auto",
+                   help="accept frames without a pose before the map exists (auto: only for --poses tracker)")
+    p.add_argument("--pose-timeout", type=float, default=30.0,
+                   help="seconds a frame waits for its pose before it is skipped (0 = forever)")
+    p.add_argument("--anchor", default=None,
+                   help="pose source fixing the first --anchor-frames frames (scale) before the map exists "
+                        "(default: gt with --poses tracker, none otherwise; '' for none)")
+    p.add_argument("--anchor-frames", type=int, default=2)
+    p.add_argument("--no-mesh", action="store_true")
+    p.add_argument("--mesh-resolution", type=int, default=96, help="marching-cubes grid per axis")
+    p.add_argument("--device", default=None, help="torch device (default: the config's, 'auto')")
+    p.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch default)")
+    p.add_argument("--linger", action="store_true", help="after the end, keep answering map/latest until SIGTERM")
+    return add_common_args(p)
+
+
+def main(argv=None, session=None, keys=None) -> int:
+    args = build_parser().parse_args(argv)
+    setup_logging(args.log_level, "mapper")
+    import torch
+
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    overrides = {"field": {"kind": args.field}} if args.field else None
+    cfg = load_mapper_config(args.config, overrides)
+    if args.device:
+        cfg.device = args.device
+    opts = MapperServiceOptions(
+        pose_source=args.poses, out=args.out, checkpoint=args.checkpoint, checkpoint_every=args.checkpoint_every,
+        resume=not args.no_resume, keep_checkpoint=args.keep_checkpoint,
+        unposed_init=None if args.unposed_init == "auto" else args.unposed_init == "yes",
+        points_interval=args.points_interval, max_points=args.max_points, write_mesh=not args.no_mesh,
+        mesh_resolution=args.mesh_resolution,
+        anchor_source=args.anchor, anchor_frames=args.anchor_frames, pose_timeout=args.pose_timeout,
+    ).validate()
+    svc = Service("mapper", args, capacities={"control": 64, "poses": 8192, "frames": 32},
+                  session=session, keys=keys, install_signals=session is None)
+    try:
+        return serve(svc, cfg, opts, args)
+    finally:
+        svc.close("done")
+
+
+def serve(svc: Service, cfg, opts: MapperServiceOptions, args) -> int:
+    def bad(text: str) -> None:
+        svc.status.error(text)
+        svc.bad_input("%s", text)
+
+    core = MapperCore(cfg, opts, counters=svc.counters, on_bad_input=bad)
+    if opts.resume and core.load_checkpoint():
+        svc.log.info("resumed from %s at frame %d (field version %d)", core.resumed_from, core.ack, core.version)
+    keys = svc.keys
+    svc.subscribe(keys.control, "control")
+    svc.subscribe(keys.poses(opts.pose_source), "poses")
+    if opts.anchor_source:
+        svc.subscribe(keys.poses(opts.anchor_source), "poses")
+    svc.subscribe(keys.frames, "frames")
+    svc.queryable(keys.latest, lambda: core.latest_field_bytes)
+    channels = {"field": keys.field, "points": keys.points}
+
+    def publish(outputs) -> None:
+        for channel, msg in outputs:
+            key = keys.poses("mapper") if channel == "poses" else channels[channel]
+            svc.publish(key, msg)
+
+    def report(state=None) -> None:
+        svc.status.update(state=state, frame_seq=core.ack, lag=core.lag)
+        if core.last_error and core.last_error != svc.status.last_error:
+            svc.status.error(core.last_error)
+        svc.counters.set("queued_frames", svc.inbox.size("frames"))
+
+    report("running")
+    svc.publish_status()
+    svc.start_heartbeat()
+    if core.latest_field is not None:
+        publish([("field", core.latest_field)])
+    interrupted = False
+    while not svc.shutdown.requested and not core.finished:
+        item = svc.inbox.get(timeout=0.1)
+        try:
+            svc.shutdown.interruptible = True  # a signal aborts a long window instead of waiting for it
+            if item is not None:
+                channel, (key, data) = item
+                if channel == "control":
+                    ctl = svc.decode(data, P.Control, key)
+                    if ctl is None or not svc.addressed(ctl):
+                        continue
+                    if ctl.command == "stop":
+                        report("finishing")
+                        svc.publish_status()
+                    publish(core.apply(ctl))
+                else:
+                    publish(core.handle(channel, data, key))
+            publish(core.tick())
+        except ServiceInterrupted:
+            interrupted = core.interrupted = True
+            break
+        except Exception as e:  # a library failure: report it, keep serving
+            svc.counters.inc("errors")
+            svc.status.error(f"{type(e).__name__}: {e}")
+            svc.log.exception("mapper step failed")
+        finally:
+            svc.shutdown.interruptible = False
+        report("paused" if core.paused else None)
+    if not core.finished or interrupted:  # SIGINT / SIGTERM: no closing optimisation, but keep the work
+        report("finishing")
+        try:
+            if interrupted:  # aborted inside an update: the last checkpoint is the consistent state
+                svc.log.info("%s during an update: writing the current map (checkpoint kept from the last window)",
+                             svc.shutdown.reason)
+            else:
+                svc.log.info("%s: writing the current map and a checkpoint", svc.shutdown.reason or "stopping")
+                core.save_checkpoint()
+            if core.out is not None:
+                t0 = time.perf_counter()
+                core.write_outputs(final=False, quick=True)
+                svc.log.info("wrote the current map in %.2f s", time.perf_counter() - t0)
+        except Exception as e:
+            svc.status.error(f"{type(e).__name__}: {e}")
+            svc.log.exception("writing outputs failed")
+    report()
+    svc.log.info("done: %d frames mapped, field version %d, %s", len(core.seq_of_fid), core.version,
+                 f"outputs in {core.out}" if core.out else "no --out")
+    if args.linger and core.finished:
+        while not svc.shutdown.wait(0.5):
+            pass
+    return 0
+
+
+if __name__ == "__main__":
+    try:
+        sys.exit(main())
+    except (FileNotFoundError, ValueError) as e:
+        print(f"services.mapper: error: {e}", file=sys.stderr)
+        sys.exit(2)

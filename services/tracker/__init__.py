@@ -1,0 +1,404 @@
+"""Tracker service core (zenoh-free): frames + field snapshots in, ``Pose(source="tracker")`` out.
+
+:class:`TrackerCore` wraps :class:`fmapping.tracking.frontend.DirectTracker` (direct image
+alignment against a keyframe whose depth is rendered through the latest map).
+
+Protocol with the mapper (``services.mapper`` in ``--poses tracker`` mode):
+
+* Before the first FieldSnapshot there is no map to track against: frames wait in a
+  bounded buffer (the mapper builds its init stage without tracker poses).
+* The mapper publishes a FieldSnapshot (``frame_seq`` = newest frame it integrated)
+  after every update, then the refined poses of its window frames as
+  ``Pose(source="mapper")``. Frames up to that newest mapped frame take the mapper's
+  pose (republished as the tracker's, so ``traj`` covers every frame); the reference
+  keyframe is re-made at the newest mapped frame with depth rendered from the new map.
+* Later frames are tracked. ``quality`` is the inlier ratio; a lost frame is published
+  with the motion-model prediction and ``quality = 0`` (the mapper skips such frames).
+  When the tracker asks for a keyframe, the current frame becomes the reference
+  (tracked pose, depth rendered from the current map).
+
+A late (or restarted) tracker asks the mapper's ``map/latest`` queryable for the
+newest snapshot (the shell does it) and continues from there: its first reference is a
+view rendered from the map at the snapshot's ``frame_c2w`` (it never saw that frame). The acknowledgement
+``ack`` is the newest frame number answered with a pose (or dropped).
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any, Optional
+
+import numpy as np
+
+from fmapping import protocol as P
+
+log = logging.getLogger("fmapping.tracker")
+
+
+@dataclass
+class TrackerServiceOptions:
+    max_buffer: int = 64  # frames waiting for a map / a reference (drop-oldest beyond)
+    keep_frames: int = 64  # recent frames kept for making references
+    max_poses: int = 4096  # remembered mapper / own poses
+    use_depth: bool = False  # reference depth from the sensor when frames carry it (else rendered from the map)
+    min_acc: float = 0.5  # rendered opacity below which a pixel has no depth
+    render_chunk: int = 4096
+
+
+class _Counters:
+    def __init__(self) -> None:
+        self.c: dict[str, float] = {}
+
+    def inc(self, name: str, n: float = 1) -> None:
+        self.c[name] = self.c.get(name, 0) + n
+
+    def set(self, name: str, value: float) -> None:
+        self.c[name] = value
+
+    def get(self, name: str, default: float = 0) -> float:
+        return self.c.get(name, default)
+
+    def snapshot(self) -> dict:
+        return dict(self.c)
+
+
+def render_depth(field, camera, c2w: np.ndarray, uv: np.ndarray, near: float, far: float, n_coarse: int,
+                 n_fine: int, min_acc: float = 0.5, chunk: int = 4096) -> np.ndarray:
+    """Depth (N,) at pixels ``uv`` (N, 2) of a camera at ``c2w`` rendered through ``field``:
+    stratified bin centres + deterministic inverse-CDF samples, opacity-normalised; NaN where
+    the accumulated opacity is below ``min_acc`` (empty map)."""
+    import torch
+
+    from fmapping.render import render_weights
+    from fmapping.sampling import ray_aabb, sample_pdf, stratified
+
+    dev, dtype = field.device, field.dtype
+    pose = torch.as_tensor(np.asarray(c2w, np.float64))
+    o_all, d_all = camera.rays(pose, torch.as_tensor(np.asarray(uv, np.float64)))
+    out = []
+    with torch.no_grad():
+        for s in range(0, len(o_all), chunk):
+            o, d = o_all[s:s + chunk].to(dev, dtype), d_all[s:s + chunk].to(dev, dtype)
+            tn, tf, hit = ray_aabb(o, d, field.aabb, near_min=near)
+            tf = torch.minimum(tf, torch.full_like(tf, far))
+            tf = torch.maximum(tf, tn + 1e-4)
+            t = stratified(tn, tf, n_coarse, perturb=False)
+            if n_fine > 0:
+                w = render_weights(field, o, d, t).weights
+                t = torch.sort(torch.cat([t, sample_pdf(t, w, n_fine, deterministic=True)], -1), -1).values
+            r = render_weights(field, o, d, t)
+            z = r.depth / r.acc.clamp_min(1e-6)
+            z = torch.where((r.acc >= min_acc) & hit, z, torch.full_like(z, float("nan")))
+            out.append(z.double().cpu())
+    return torch.cat(out).numpy() if out else np.zeros(0)
+
+
+Output = tuple[str, Any]
+
+
+class TrackerCore:
+    """See the module docstring. Single-threaded."""
+
+    def __init__(self, cfg=None, opts: Optional[TrackerServiceOptions] = None, counters=None, on_bad_input=None):
+        from fmapping.tracking.frontend import TrackerConfig
+
+        self.cfg = cfg if cfg is not None else TrackerConfig()
+        self.opts = opts or TrackerServiceOptions()
+        self.counters = counters if counters is not None else _Counters()
+        self.on_bad_input = on_bad_input
+        self.camera_dict: Optional[dict] = None
+        self.camera = None
+        self.tracker = None
+        self.field = None
+        self.render_cfg: dict = {}
+        self.version = 0
+        self.map_seq = -1  # newest frame integrated into the map we hold
+        self.waiting: "OrderedDict[int, P.Frame]" = OrderedDict()  # frames to answer, in order
+        self.recent: "OrderedDict[int, P.Frame]" = OrderedDict()  # images for references
+        self.mapper_poses: dict[int, np.ndarray] = {}
+        self.own_poses: dict[int, np.ndarray] = {}  # tracked (not lost) poses
+        self.snapshot_pose: Optional[tuple[int, np.ndarray]] = None  # (frame_seq, c2w) of the newest snapshot
+        self.last_seq = -1
+        self.ref_seq = -1
+        self._ref_target: Optional[int] = None  # frame to make the next reference at
+        self.last_error = ""
+        self.last_track: dict = {}
+
+    @property
+    def ack(self) -> int:
+        return self.last_seq
+
+    # ------------------------------------------------------------ inputs
+    def handle(self, channel: str, data: bytes, key: str = "") -> list[Output]:
+        expect = {"frames": P.Frame, "field": P.FieldSnapshot, "poses": P.Pose, "control": P.Control}.get(channel)
+        if expect is None:
+            raise ValueError(f"TrackerCore.handle: unknown channel {channel!r}")
+        try:
+            msg = P.decode(data, expect)
+        except P.ProtocolError as e:
+            self._bad(f"{key or channel}: {e}", "decode_errors")
+            return []
+        return self.apply(msg)
+
+    def apply(self, msg) -> list[Output]:
+        if isinstance(msg, P.Frame):
+            return self.on_frame(msg)
+        if isinstance(msg, P.FieldSnapshot):
+            return self.on_field(msg)
+        if isinstance(msg, P.Pose):
+            return self.on_pose(msg)
+        if isinstance(msg, P.Control):
+            if msg.command == "reset":
+                self.reset()
+            return []
+        raise ValueError(f"TrackerCore: unexpected message {type(msg).__name__}")
+
+    def _bad(self, why: str, counter: str = "rejected") -> None:
+        self.counters.inc(counter)
+        self.last_error = why
+        if self.on_bad_input is not None:
+            self.on_bad_input(why)
+
+    def on_frame(self, f: P.Frame) -> list[Output]:
+        if self.camera_dict is None:
+            self._set_camera(f.camera)
+        elif f.camera != self.camera_dict:
+            self._bad(f"frame {f.seq}: camera {f.camera} differs from {self.camera_dict}", "rejected_frames")
+            return []
+        if f.seq <= self.last_seq or f.seq in self.waiting:
+            self.counters.inc("stale_frames")
+            return []
+        self.counters.inc("frames_received")
+        self.waiting[f.seq] = f
+        if len(self.waiting) > 1 and f.seq < next(reversed(self.waiting)):
+            self.waiting = OrderedDict(sorted(self.waiting.items()))
+        self.recent[f.seq] = f
+        while len(self.recent) > self.opts.keep_frames:
+            self.recent.popitem(last=False)
+        return self._advance()
+
+    def on_field(self, s: P.FieldSnapshot) -> list[Output]:
+        if s.version <= self.version and self.field is not None:
+            self.counters.inc("stale_snapshots")
+            return []
+        from fmapping.field import FieldConfig, field_from_snapshot
+
+        try:
+            fcfg = dataclasses.replace(FieldConfig(), **dict(s.config.get("field", {})))
+            field = field_from_snapshot(fcfg, {k: np.array(v) for k, v in s.arrays.items()})
+        except (TypeError, ValueError, KeyError) as e:
+            self._bad(f"field snapshot v{s.version}: {e}", "rejected_snapshots")
+            return []
+        self.field = field.eval()
+        self.render_cfg = {k: s.config.get(k, d) for k, d in (("near", 0.1), ("far", 6.0), ("n_coarse", 32),
+                                                               ("n_fine", 16))}
+        self.version = s.version
+        self.map_seq = max(self.map_seq, s.frame_seq)
+        if s.frame_c2w is not None and s.frame_seq >= 0:
+            self.snapshot_pose = (s.frame_seq, np.array(s.frame_c2w))
+        self._ref_target = s.frame_seq if s.frame_seq >= 0 else None
+        self.counters.set("field_version", s.version)
+        self.counters.inc("snapshots")
+        if self.camera_dict is None and isinstance(s.config.get("camera"), dict):
+            self._set_camera(s.config["camera"])
+        return self._advance()
+
+    def on_pose(self, p: P.Pose) -> list[Output]:
+        if p.source != "mapper":
+            return []
+        self.mapper_poses[p.seq] = np.array(p.c2w)
+        while len(self.mapper_poses) > self.opts.max_poses:
+            self.mapper_poses.pop(min(self.mapper_poses))
+        self.counters.inc("mapper_poses")
+        return self._advance()
+
+    def reset(self) -> None:
+        self.tracker = None
+        self.field = None
+        self.camera_dict = None
+        self.camera = None
+        self.version = 0
+        self.map_seq = -1
+        self.waiting.clear()
+        self.recent.clear()
+        self.mapper_poses.clear()
+        self.own_poses.clear()
+        self.snapshot_pose = None
+        self.ref_seq = -1
+        self._ref_target = None
+        self.counters.inc("resets")
+
+    def _set_camera(self, cam: dict) -> None:
+        from fmapping.camera import PinholeCamera
+        from fmapping.tracking.frontend import DirectTracker
+
+        self.camera_dict = dict(cam)
+        self.camera = PinholeCamera.from_dict(cam)
+        self.tracker = DirectTracker(self.camera, self.cfg)
+
+    # ------------------------------------------------------------ tracking
+    def _pose_of(self, seq: int) -> Optional[np.ndarray]:
+        if seq in self.mapper_poses:
+            return self.mapper_poses[seq]
+        if self.snapshot_pose is not None and self.snapshot_pose[0] == seq:
+            return self.snapshot_pose[1]
+        return self.own_poses.get(seq)
+
+    def _reference_frame(self, target: int) -> Optional[int]:
+        """``target`` when its pose is known (its image, or a render of the map when we never saw
+        it, e.g. after a restart), else the newest earlier frame with pose and image."""
+        if self._pose_of(target) is not None:
+            return target
+        cands = [s for s in self.recent if s <= target and self._pose_of(s) is not None]
+        return max(cands) if cands else None
+
+    def _render_view(self, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """RGB (uint8) and depth (0 where the map is empty) of the map seen from ``c2w``."""
+        from fmapping.render import render_image
+
+        rc = self.render_cfg
+        r = render_image(self.field, self.camera, c2w, rc["near"], rc["far"], int(rc["n_coarse"]),
+                         n_importance=int(rc["n_fine"]))
+        rgb = (r["rgb"].clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+        depth = np.where(r["acc"].cpu().numpy() >= self.opts.min_acc, r["depth_normalized"].cpu().numpy(), 0.0)
+        return rgb, depth.astype(np.float32)
+
+    def _make_reference(self, seq: int) -> bool:
+        f = self.recent.get(seq)
+        c2w = self._pose_of(seq)
+        if c2w is None or self.field is None:
+            return False
+        t0 = time.perf_counter()
+        if f is None:  # never saw this frame (restart / late join): a view rendered from the map
+            rgb, depth = self._render_view(c2w)
+            try:
+                self.tracker.set_reference(rgb, depth, c2w, frame_index=seq)
+            except ValueError as e:
+                self.counters.inc("reference_failures")
+                self.last_error = f"rendered reference at frame {seq}: {e}"
+                return False
+            self.ref_seq = seq
+            self.counters.inc("references_rendered")
+            self.counters.set("reference_ms", round((time.perf_counter() - t0) * 1e3, 1))
+            return True
+        if self.opts.use_depth and f.depth is not None:
+            depth: Any = np.asarray(f.depth)
+        else:
+            rc = self.render_cfg
+
+            def depth(uv: np.ndarray) -> np.ndarray:
+                return render_depth(self.field, self.camera, c2w, uv, rc["near"], rc["far"], int(rc["n_coarse"]),
+                                    int(rc["n_fine"]), self.opts.min_acc, self.opts.render_chunk)
+        try:
+            self.tracker.set_reference(np.asarray(f.rgb), depth, c2w, frame_index=seq)
+        except ValueError as e:
+            self.counters.inc("reference_failures")
+            self.last_error = f"reference at frame {seq}: {e}"
+            return False
+        self.ref_seq = seq
+        self.counters.inc("references")
+        self.counters.set("reference_ms", round((time.perf_counter() - t0) * 1e3, 1))
+        return True
+
+    def _emit(self, seq: int, stamp: float, c2w: np.ndarray, quality: Optional[float]) -> list[Output]:
+        """The pose of frame ``seq``, preceded by ``quality = 0`` answers for frames that never
+        reached us (dropped upstream), so that nobody waits for them."""
+        out: list[Output] = []
+        if 0 <= self.last_seq < seq - 1 and seq - self.last_seq <= 1024:
+            for s in range(self.last_seq + 1, seq):
+                out.append(self._skip(s))
+        self.last_seq = max(self.last_seq, seq)
+        out.append(("poses", P.Pose(seq=seq, timestamp=stamp, c2w=_rigid(c2w), source="tracker", quality=quality)))
+        return out
+
+    def _skip(self, seq: int, stamp: float = 0.0) -> Output:
+        """An unusable pose (``quality = 0``) for a frame this tracker will not track."""
+        self.counters.inc("frames_skipped")
+        self.last_seq = max(self.last_seq, seq)
+        return ("poses", P.Pose(seq=seq, timestamp=stamp, c2w=np.eye(4), source="tracker", quality=0.0))
+
+    def _drop_oldest(self) -> Output:
+        seq, f = self.waiting.popitem(last=False)
+        self.counters.inc("dropped_frames")
+        return self._skip(seq, f.timestamp)
+
+    def _advance(self) -> list[Output]:
+        out: list[Output] = []
+        while self.waiting:
+            seq, f = next(iter(self.waiting.items()))
+            if self.field is None or self.tracker is None:
+                if len(self.waiting) > self.opts.max_buffer:
+                    out.append(self._drop_oldest())
+                    continue
+                break
+            if seq <= self.map_seq:
+                # mapped already (e.g. the init frames): its pose comes from the mapper, right after the snapshot
+                c2w = self.mapper_poses.get(seq)
+                if c2w is not None:
+                    self.waiting.popitem(last=False)
+                    self.tracker.observe(c2w)
+                    self.counters.inc("poses_from_mapper")
+                    out += self._emit(seq, f.timestamp, c2w, None)
+                    continue
+                if self.map_seq not in self.mapper_poses and len(self.waiting) <= self.opts.max_buffer:
+                    break  # the window's poses are on their way
+                # not in the mapper's window (e.g. the mapper follows GT poses): track it like any frame
+            if self._ref_target is not None:
+                target = self._reference_frame(self._ref_target)
+                if target is None and len(self.waiting) <= self.opts.max_buffer:
+                    break  # the mapper's pose of its newest frame is on its way
+                self._ref_target = None
+                if target is not None and self._make_reference(target):
+                    hist = [self._pose_of(s) for s in (target - 1, target)]
+                    self.tracker.reset_motion([h for h in hist if h is not None])
+            self.waiting.popitem(last=False)
+            if self.tracker.reference is None:
+                # a map but no usable reference (e.g. the map is still empty there): answer, never stall
+                self.counters.inc("frames_lost")
+                self.counters.inc("frames_without_reference")
+                out += self._emit(seq, f.timestamp, self.tracker.predict(), 0.0)
+                continue
+            out += self._track(f)
+        self.counters.set("waiting_frames", len(self.waiting))
+        return out
+
+    def _track(self, f: P.Frame) -> list[Output]:
+        res = self.tracker.track(np.asarray(f.rgb))
+        self.counters.inc("frames_tracked")
+        self.counters.set("track_ms", round(res.ms, 2))
+        self.last_track = res.to_dict()
+        if res.lost:
+            self.counters.inc("frames_lost")
+            self.last_error = f"frame {f.seq} lost: {res.reason}"
+            return self._emit(f.seq, f.timestamp, res.c2w, 0.0)
+        if res.relocalised:
+            self.counters.inc("relocalised")
+        self.own_poses[f.seq] = np.array(res.c2w)
+        while len(self.own_poses) > self.opts.max_poses:
+            self.own_poses.pop(min(self.own_poses))
+        if res.need_keyframe:
+            self.counters.inc("keyframe_requests")
+            self._make_reference(f.seq)
+        return self._emit(f.seq, f.timestamp, res.c2w, float(max(res.inlier_ratio, 1e-6)))
+
+
+def _rigid(m: np.ndarray) -> np.ndarray:
+    m = np.array(m, np.float64)
+    u, _, vt = np.linalg.svd(m[:3, :3])
+    r = u @ vt
+    if np.linalg.det(r) < 0:
+        u[:, -1] *= -1
+        r = u @ vt
+    m[:3, :3] = r
+    m[3] = [0, 0, 0, 1]
+    return m
+
+
+def load_tracker_config(path=None):
+    from fmapping.config import load_config
+    from fmapping.tracking.frontend import TrackerConfig
+
+    return load_config(TrackerConfig(), path)

@@ -1,0 +1,645 @@
+"""Services over zenoh: in-process peers (two sessions over a free loopback port, no router),
+the mapper / tracker cores, flow control, late joiners, checkpoints, and a short end-to-end
+``fmapping up`` of real subprocesses. Synchronisation uses events and queues with timeouts."""
+from __future__ import annotations
+
+import os
+import queue
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+zenoh = pytest.importorskip("zenoh")
+
+from fmapping import protocol as P  # noqa: E402
+from services import common as C  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+TIMEOUT = 30.0
+
+SMALL_MAPPER = {
+    "init_frames": 4, "init_rounds": [[0, 16], [3, 16]], "init_iters_per_round": 4,
+    "window_size": 6, "n_global_keyframes": 2, "new_frames_per_window": 2, "iters_per_window": 2,
+    "keyframe_every": 2, "rays_per_iter": 96, "n_coarse": 12, "n_fine": 4, "final_global_iters": 2,
+    "device": "cpu", "seed": 0,
+    "field": {"resolution": 12, "density_components": 4, "appearance_components": 4, "app_features": 8, "hidden": 8},
+}
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """A tiny synthetic RGB-D scene with GT poses (shared by the tests of this module)."""
+    from fmapping.synthetic import generate_scene
+
+    out = tmp_path_factory.mktemp("scene") / "s"
+    generate_scene(out, seed=2, frames=14, size=(64, 48), max_cloud_points=2000, mesh_spacing=0.2)
+    return out
+
+
+@pytest.fixture(scope="module")
+def dataset(scene):
+    from fmapping.datasets import open_dataset
+
+    return open_dataset(scene)
+
+
+def small_cfg():
+    from fmapping.config import merge
+    from fmapping.mapper import MapperConfig
+
+    return merge(MapperConfig(), SMALL_MAPPER)
+
+
+def _conf(listen=None, connect=None):
+    return C.zenoh_config("peer", listen=listen or [], connect=connect or [], multicast=False)
+
+
+@pytest.fixture
+def zpair():
+    """Two zenoh peers in this process: ``a`` listens on a free loopback port, ``b`` connects to it."""
+    port = C.free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    a = zenoh.open(_conf(listen=[ep]))
+    b = zenoh.open(_conf(connect=[ep]))
+    yield a, b, ep
+    b.close()
+    a.close()
+
+
+def _wait_matching(pub, timeout=TIMEOUT):
+    end = time.monotonic() + timeout
+    while not pub.matching_status.matching:
+        assert time.monotonic() < end, "subscriber never matched"
+        time.sleep(0.01)
+
+
+# ---------------------------------------------------------------------------- plumbing
+def test_frame_pub_sub_round_trip_over_zenoh(zpair):
+    a, b, _ = zpair
+    keys = P.Keys("t1")
+    got: "queue.Queue[bytes]" = queue.Queue()
+    sub = b.declare_subscriber(keys.frames, lambda s: got.put(C.payload_bytes(s)))
+    pub = a.declare_publisher(keys.frames)
+    _wait_matching(pub)
+    rng = np.random.default_rng(0)
+    f = P.Frame(seq=7, timestamp=0.25, rgb=rng.integers(0, 256, (48, 64, 3), dtype=np.uint8),
+                camera={"fx": 50.0, "fy": 50.0, "cx": 31.5, "cy": 23.5, "width": 64, "height": 48},
+                depth=rng.uniform(0.5, 3, (48, 64)).astype(np.float32))
+    pub.put(P.encode(f))
+    back = P.decode(got.get(timeout=TIMEOUT), P.Frame)
+    assert back.seq == 7 and back.timestamp == 0.25
+    assert back.rgb.tobytes() == f.rgb.tobytes() and back.depth.tobytes() == f.depth.tobytes()
+    sub.undeclare()
+
+
+def test_queryable_answers_latest_snapshot(zpair):
+    a, b, _ = zpair
+    keys = P.Keys("t2")
+    latest = {"data": None}
+    qa = a.declare_queryable(keys.latest, lambda q: q.reply(keys.latest, latest["data"]) if latest["data"] else None)
+    assert C.query_latest(b, keys.latest, timeout=0.5) is None  # nothing published yet: no reply, no hang
+    for v in (1, 2, 3):
+        snap = P.PointsSnapshot(version=v, points=np.full((v, 3), v, np.float32), colors=np.zeros((v, 3), np.uint8))
+        latest["data"] = P.encode(snap)
+    got = C.query_latest(b, keys.latest, timeout=TIMEOUT)
+    assert got is not None and P.decode(got).version == 3
+    qa.undeclare()
+
+
+def test_inbox_drops_oldest_and_serves_by_priority():
+    box = C.Inbox({"control": 2, "frames": 3})
+    for i in range(5):
+        box.put("frames", i)
+    box.put("control", "stop")
+    assert box.counters.get("dropped_frames") == 2 and box.counters.get("received_frames") == 5
+    assert box.get(0) == ("control", "stop")
+    assert [box.get(0)[1] for _ in range(3)] == [2, 3, 4]
+    assert box.get(0.01) is None
+    t = threading.Timer(0.05, lambda: box.put("frames", 9))
+    t.start()
+    assert box.get(timeout=TIMEOUT) == ("frames", 9)  # wakes on put
+
+
+def test_zenoh_config_and_yaml(tmp_path):
+    import argparse
+
+    y = tmp_path / "z.yaml"
+    y.write_text("mode: client\nconnect: [tcp/10.0.0.1:7447]\nnamespace: lab\noptions:\n  scouting/gossip/enabled: false\n")
+    args = C.add_common_args(argparse.ArgumentParser()).parse_args(["--zenoh-config", str(y), "--ns", "cli"])
+    net = C.resolve_network(args)
+    assert net["mode"] == "client" and net["connect"] == ["tcp/10.0.0.1:7447"] and net["ns"] == "cli"
+    assert net["multicast"] is False and net["listen"] == []
+    conf = C.zenoh_config(net["mode"], net["listen"], net["connect"], net["multicast"], net["options"])
+    assert "client" in conf.get_json("mode") and conf.get_json("scouting/multicast/enabled") == "false"
+    y.write_text("bogus: 1\n")
+    with pytest.raises(ValueError, match="unknown keys"):
+        C.resolve_network(args)
+
+
+# ---------------------------------------------------------------------------- mapper core
+def _feed(core, ds, ids, source="gt", pose_first=True):
+    outs = []
+    for i in ids:
+        f = ds[i]
+        pose = P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source=source))
+        frame = P.encode(P.frame_from_dataset(f, seq=i))
+        for ch, data in ((("poses", pose), ("frames", frame)) if pose_first else (("frames", frame), ("poses", pose))):
+            outs += core.handle(ch, data)
+    return outs
+
+
+def _field_state(core):
+    return {k: v.clone() for k, v in core.mapper.field.state_dict().items()}
+
+
+def test_mapper_core_gt_snapshots_rebuild_the_field_and_bad_input_changes_nothing(dataset, tmp_path):
+    from fmapping.field import FieldConfig, field_from_snapshot
+    from services.mapper import MapperCore, MapperServiceOptions
+
+    core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", out=str(tmp_path), points_interval=1e9,
+                                                        checkpoint_every=0))
+    outs = _feed(core, dataset, range(8))
+    snaps = [m for ch, m in outs if ch == "field"]
+    assert [s.version for s in snaps] == list(range(1, len(snaps) + 1)) and len(snaps) == 3  # init + 2 windows
+    assert core.ack == 7 and snaps[-1].frame_seq == 7
+    last = P.decode(core.latest_field_bytes, P.FieldSnapshot)
+    assert last.version == snaps[-1].version
+    # the snapshot rebuilds the mapper's field exactly
+    field = field_from_snapshot(FieldConfig(**last.config["field"]), {k: np.array(v) for k, v in last.arrays.items()})
+    pts = torch.rand(200, 3) * (core.mapper.aabb[1] - core.mapper.aabb[0]) + core.mapper.aabb[0]
+    with torch.no_grad():
+        torch.testing.assert_close(field.density_raw(pts), core.mapper.field.density_raw(pts))
+    # refined window poses come with it, by frame number
+    mposes = {m.seq: m for ch, m in outs if ch == "poses"}
+    assert set(mposes) <= set(range(8)) and all(m.source == "mapper" for m in mposes.values())
+
+    before = (_field_state(core), core.ack, core.version, len(core.frames), len(core.poses), core.counters.snapshot())
+    good = P.encode(P.frame_from_dataset(dataset[8], seq=8))
+    other_size = P.frame_from_dataset(dataset[8], seq=8)
+    other_size.rgb = np.zeros((24, 32, 3), np.uint8)
+    other_size.depth = None
+    other_size.camera = dict(other_size.camera, width=32, height=24)
+    import msgpack
+
+    raw = msgpack.unpackb(P.encode(P.Pose(seq=8, timestamp=0.0, c2w=np.eye(4), source="gt")))
+    raw["c2w"]["data"] = np.where(np.eye(4) > 0, np.nan, 0.0).tobytes()
+    nan_pose = msgpack.packb(raw)
+    bad = [("frames", good[:-10]), ("frames", b"\x80\x04garbage"), ("poses", nan_pose), ("poses", good),
+           ("control", P.encode(P.Pose(seq=1, timestamp=0.0, c2w=np.eye(4)))), ("frames", P.encode(other_size))]
+    for ch, data in bad:
+        assert core.handle(ch, data) == []
+    c = core.counters.snapshot()
+    assert c["decode_errors"] - before[5].get("decode_errors", 0) == 5 and c["rejected_frames"] == 1
+    after = _field_state(core)
+    assert all(torch.equal(before[0][k], after[k]) for k in after)
+    assert (core.ack, core.version, len(core.frames), len(core.poses)) == before[1:5]
+
+
+def test_mapper_core_external_source_waits_for_its_poses(dataset):
+    from services.mapper import MapperCore, MapperServiceOptions
+
+    core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="external", points_interval=1e9,
+                                                        checkpoint_every=0))
+    _feed(core, dataset, range(3), source="gt")  # GT poses are not what this mapper listens to
+    assert core.ack == -1 and len(core.frames) == 3 and core.counters.get("ignored_poses") == 3
+    for i in range(3):  # poses after their frames, out of order
+        f = dataset[2 - i]
+        core.handle("poses", P.encode(P.Pose(seq=2 - i, timestamp=f.timestamp, c2w=f.c2w, source="external")))
+    assert core.ack == 2 and core.counters.get("frames_posed") == 3
+    # an unusable pose (quality 0) after init makes the frame skipped instead of waited for
+    outs = _feed(core, dataset, range(3, 5), source="external")
+    assert core.mapper.initialized and any(ch == "field" for ch, _ in outs)
+    f = dataset[5]
+    core.handle("frames", P.encode(P.frame_from_dataset(f, seq=5)))
+    core.handle("poses", P.encode(P.Pose(seq=5, timestamp=f.timestamp, c2w=f.c2w, source="external", quality=0.0)))
+    assert core.ack == 5 and core.counters.get("frames_skipped") == 1
+
+
+def test_mapper_checkpoint_resume(dataset, tmp_path):
+    from services.mapper import MapperCore, MapperServiceOptions
+
+    opts = dict(pose_source="gt", out=str(tmp_path), points_interval=1e9, checkpoint_every=1)
+    a = MapperCore(small_cfg(), MapperServiceOptions(**opts))
+    _feed(a, dataset, range(6))
+    ck = tmp_path / "checkpoint.pt"
+    assert ck.is_file() and not list(tmp_path.glob(".*.tmp"))
+    b = MapperCore(small_cfg(), MapperServiceOptions(**opts))
+    assert b.load_checkpoint()
+    assert (b.ack, b.version, b.seq_of_fid) == (a.ack, a.version, a.seq_of_fid)
+    sa, sb = _field_state(a), _field_state(b)
+    assert all(torch.equal(sa[k], sb[k]) for k in sa)
+    assert b.latest_field_bytes is not None and P.decode(b.latest_field_bytes).version == a.version
+    # frames it already has are ignored; new ones continue the same way in both
+    _feed(b, dataset, range(4, 8))
+    _feed(a, dataset, range(6, 8))
+    assert b.counters.get("stale_frames") == 2 and a.ack == b.ack == 7
+    sa, sb = _field_state(a), _field_state(b)
+    assert all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
+def test_mapper_finish_writes_outputs(dataset, tmp_path):
+    from fmapping.ply import read_ply
+    from fmapping.trajectory import read_tum_trajectory
+    from services.mapper import MapperCore, MapperServiceOptions
+
+    core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", out=str(tmp_path), points_interval=1e9,
+                                                        mesh_resolution=24))
+    _feed(core, dataset, range(6))
+    outs = core.finish()
+    assert core.finished and any(ch == "points" for ch, _ in outs) and core.finish() == []
+    ts, c2w = read_tum_trajectory(tmp_path / "traj.txt")
+    np.testing.assert_allclose(ts, [dataset.timestamps[i] for i in range(6)], atol=1e-6)
+    assert read_ply(tmp_path / "map.ply").points.shape[1] == 3 and (tmp_path / "mesh.ply").is_file()
+    assert (tmp_path / "stats.json").is_file() and not (tmp_path / "checkpoint.pt").exists()
+
+
+def test_mapper_core_skips_a_frame_whose_pose_never_comes(dataset):
+    from services.mapper import MapperCore, MapperServiceOptions
+
+    now = [0.0]
+    core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="external", points_interval=1e9,
+                                                        checkpoint_every=0, pose_timeout=30.0), clock=lambda: now[0])
+    _feed(core, dataset, range(2), source="external")
+    core.handle("frames", P.encode(P.frame_from_dataset(dataset[2], seq=2)))  # its producer died
+    now[0] = 29.0
+    assert core.tick() == [] and core.ack == 1
+    now[0] = 31.0
+    core.tick()
+    assert core.ack == 2 and core.counters.get("pose_timeouts") == 1 and len(core.frames) == 0
+
+
+# ---------------------------------------------------------------------------- tracker core
+def test_tracker_core_waits_for_the_map_then_answers_every_frame(dataset):
+    from fmapping.field import FieldConfig, build_field
+    from services.tracker import TrackerCore, TrackerServiceOptions
+
+    core = TrackerCore(opts=TrackerServiceOptions(use_depth=True))
+    for i in range(6):
+        assert core.handle("frames", P.encode(P.frame_from_dataset(dataset[i], seq=i))) == []  # no map: wait
+    assert core.ack == -1 and len(core.waiting) == 6
+    fcfg = FieldConfig(resolution=8, density_components=2, appearance_components=2, app_features=4, hidden=4)
+    field = build_field(fcfg, np.array([[-3.0, -3, -1], [3, 3, 4]]))
+    import dataclasses
+
+    snap = P.FieldSnapshot(version=1, kind="cp", config={"field": dataclasses.asdict(fcfg), "near": 0.1, "far": 6.0,
+                                                         "n_coarse": 8, "n_fine": 0},
+                           aabb=np.array([[-3.0, -3, -1], [3, 3, 4]]), arrays=field.snapshot(), frame_seq=2)
+    assert core.handle("field", P.encode(snap)) == []  # frames <= 2 wait for the mapper's poses
+    outs = []
+    for i in range(3):
+        outs += core.handle("poses", P.encode(P.Pose(seq=i, timestamp=dataset.timestamps[i], c2w=dataset[i].c2w,
+                                                     source="mapper")))
+    poses = {m.seq: m for _, m in outs}
+    assert sorted(poses) == list(range(6)) and core.ack == 5 and all(m.source == "tracker" for m in poses.values())
+    for i in range(3):  # mapped frames: exactly the mapper's poses
+        np.testing.assert_allclose(poses[i].c2w, dataset[i].c2w, atol=1e-9)
+    # tracked frames (reference = frame 2 with its sensor depth): close to the ground truth
+    for i in range(3, 6):
+        assert poses[i].quality and poses[i].quality > 0, core.last_track
+        err = np.linalg.norm(poses[i].c2w[:3, 3] - dataset[i].c2w[:3, 3])
+        assert err < 0.02, (i, err)
+    # frames 6 and 7 never arrive (dropped upstream): answered as unusable so the mapper does not wait
+    more = {m.seq: m for _, m in core.handle("frames", P.encode(P.frame_from_dataset(dataset[8], seq=8)))}
+    assert sorted(more) == [6, 7, 8] and more[6].quality == more[7].quality == 0.0 and more[8].quality > 0
+
+
+def test_tracker_core_answers_lost_when_the_map_is_empty(dataset):
+    import dataclasses
+
+    from fmapping.field import FieldConfig, build_field
+    from services.tracker import TrackerCore
+
+    core = TrackerCore()  # reference depth rendered from the map, which is empty (clear field)
+    fcfg = FieldConfig(resolution=8, density_components=2, appearance_components=2, app_features=4, hidden=4)
+    field = build_field(fcfg, np.array([[-3.0, -3, -1], [3, 3, 4]]))
+    snap = P.FieldSnapshot(version=1, kind="cp", config={"field": dataclasses.asdict(fcfg), "n_coarse": 8, "n_fine": 0},
+                           aabb=np.array([[-3.0, -3, -1], [3, 3, 4]]), arrays=field.snapshot(), frame_seq=0)
+    core.handle("field", P.encode(snap))
+    core.handle("poses", P.encode(P.Pose(seq=0, timestamp=0.0, c2w=dataset[0].c2w, source="mapper")))
+    outs = []
+    for i in range(4):
+        outs += core.handle("frames", P.encode(P.frame_from_dataset(dataset[i], seq=i)))
+    q = {m.seq: m.quality for _, m in outs}
+    assert sorted(q) == [0, 1, 2, 3] and q[0] is None and all(q[i] == 0.0 for i in (1, 2, 3))
+    assert core.counters.get("reference_failures") >= 1 and core.ack == 3
+
+
+def test_restarted_tracker_resyncs_from_the_latest_snapshot(dataset, tmp_path):
+    """A tracker that starts after the map exists (restart / late join) gets only the latest
+    snapshot (map/latest) and new frames: it renders its first reference from the map at the
+    snapshot's frame pose and answers every new frame at once (tracked or lost)."""
+    from services.mapper import MapperCore, MapperServiceOptions
+    from services.tracker import TrackerCore
+
+    mapper = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", points_interval=1e9, checkpoint_every=0))
+    _feed(mapper, dataset, range(6))
+    snap = P.decode(mapper.latest_field_bytes, P.FieldSnapshot)
+    assert snap.frame_seq == 5 and snap.frame_c2w is not None
+    np.testing.assert_allclose(snap.frame_c2w, dataset[5].c2w, atol=1e-6)  # GT poses are kept as given
+    core = TrackerCore()
+    core.handle("field", mapper.latest_field_bytes)
+    outs = []
+    for i in range(6, 9):
+        outs += core.handle("frames", P.encode(P.frame_from_dataset(dataset[i], seq=i)))
+    assert sorted(m.seq for _, m in outs) == [6, 7, 8] and core.ack == 8 and not core.waiting
+    c = core.counters.snapshot()
+    assert c.get("references_rendered", 0) + c.get("reference_failures", 0) >= 1
+
+
+# ---------------------------------------------------------------------------- services over zenoh
+def _start(target, *args, **kw):
+    errors = []
+
+    def run():
+        try:
+            target(*args, **kw)
+        except BaseException as e:  # surfaced by the test
+            errors.append(e)
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    return t, errors
+
+
+def test_mapper_service_publishes_snapshots_and_serves_late_joiners(dataset, tmp_path, zpair):
+    from services.mapper.__main__ import main as mapper_main
+
+    a, b, ep = zpair
+    keys = P.Keys("t3")
+    cfg = tmp_path / "m.yaml"
+    import yaml
+
+    cfg.write_text(yaml.safe_dump(SMALL_MAPPER))
+    snaps: "queue.Queue[P.FieldSnapshot]" = queue.Queue()
+    statuses: "queue.Queue[P.Status]" = queue.Queue()
+    sub = b.declare_subscriber(keys.field, lambda s: snaps.put(P.decode(C.payload_bytes(s))))
+    sub2 = b.declare_subscriber(keys.status("mapper"), lambda s: statuses.put(P.decode(C.payload_bytes(s))))
+    thread, errors = _start(mapper_main, ["--poses", "gt", "--config", str(cfg), "--out", str(tmp_path / "out"),
+                                          "--points-interval", "1000", "--no-mesh", "--status-interval", "0.2"],
+                            session=a, keys=keys)
+    assert statuses.get(timeout=TIMEOUT).service == "mapper"  # up: its subscriptions are declared
+    pub_f = b.declare_publisher(keys.frames, congestion_control=zenoh.CongestionControl.BLOCK)
+    pub_p = b.declare_publisher(keys.poses("gt"), congestion_control=zenoh.CongestionControl.BLOCK)
+    for i in range(6):
+        f = dataset[i]
+        pub_p.put(P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
+        pub_f.put(P.encode(P.frame_from_dataset(f, seq=i)))
+    pub_f.put(b"not a message")
+    versions = [snaps.get(timeout=120).version for _ in range(2)]  # init (4 frames) + one window (2 more)
+    assert versions == [1, 2]
+    # a late joiner (a third session) gets the latest snapshot by query
+    late = zenoh.open(_conf(connect=[ep]))
+    try:
+        data = C.query_latest(late, keys.latest, timeout=TIMEOUT)
+        assert data is not None and P.decode(data, P.FieldSnapshot).version == 2
+    finally:
+        late.close()
+    end = time.monotonic() + TIMEOUT
+    while True:  # the bad payload is counted in the published status
+        st = statuses.get(timeout=TIMEOUT)
+        if st.counters.get("decode_errors", 0) >= 1 and st.frame_seq == 5:
+            break
+        assert time.monotonic() < end
+    b.declare_publisher(keys.control).put(P.encode(P.Control("stop", {"reason": "end", "last_seq": 5})))
+    thread.join(timeout=120)
+    assert not thread.is_alive() and not errors
+    assert (tmp_path / "out" / "map.ply").is_file() and (tmp_path / "out" / "traj.txt").is_file()
+    sub.undeclare()
+    sub2.undeclare()
+
+
+class _ListDataset:
+    """An in-memory dataset of small frames (for play tests)."""
+
+    def __init__(self, n=20, h=8, w=10):
+        from fmapping.camera import PinholeCamera
+        from fmapping.datasets.base import Frame
+
+        cam = PinholeCamera(8.0, 8.0, (w - 1) / 2, (h - 1) / 2, w, h)
+        self.timestamps = np.arange(n) / 30.0
+        self.frames = [Frame(i, float(self.timestamps[i]), np.full((h, w, 3), i, np.uint8), cam, None, np.eye(4))
+                       for i in range(n)]
+
+    def __len__(self):
+        return len(self.frames)
+
+    def __getitem__(self, i):
+        return self.frames[i]
+
+
+def test_play_flow_control_bounds_frames_in_flight(zpair):
+    from services.io.play import main as play_main
+
+    a, b, _ = zpair
+    keys = P.Keys("t4")
+    ds = _ListDataset(20)
+    frames: "queue.Queue[bytes]" = queue.Queue()
+    controls: "queue.Queue[bytes]" = queue.Queue()
+    b.declare_subscriber(keys.frames, lambda s: frames.put(C.payload_bytes(s)))
+    b.declare_subscriber(keys.control, lambda s: controls.put(C.payload_bytes(s)))
+    gt: "queue.Queue[bytes]" = queue.Queue()
+    b.declare_subscriber(keys.poses("gt"), lambda s: gt.put(C.payload_bytes(s)))
+    status_pub = b.declare_publisher(keys.status("mapper"))
+    thread, errors = _start(play_main, ["--data", "unused", "--window", "3", "--ack-from", "mapper",
+                                        "--ack-timeout", "60", "--status-interval", "0.2"],
+                            session=a, keys=keys, dataset=ds)
+    board = C.StatusBoard("mapper")  # a fake mapper: heartbeats its status like a real service
+    board.update(state="running")
+    stop_beat = threading.Event()
+
+    def beat():
+        while not stop_beat.wait(0.1):
+            status_pub.put(P.encode(board.message()))
+
+    threading.Thread(target=beat, daemon=True).start()
+    acked, max_in_flight, seqs = -1, 0, []
+    try:
+        for _ in range(20):
+            f = P.decode(frames.get(timeout=TIMEOUT), P.Frame)
+            seqs.append(f.seq)
+            max_in_flight = max(max_in_flight, f.seq - acked)
+            if f.seq % 2 == 1 or frames.empty():  # a slow consumer acknowledging in bursts
+                acked = f.seq
+                board.update(frame_seq=acked)
+                status_pub.put(P.encode(board.message()))
+    finally:
+        stop_beat.set()
+    assert seqs == list(range(20)) and max_in_flight <= 3
+    stop = P.decode(controls.get(timeout=TIMEOUT), P.Control)
+    assert stop.command == "stop" and stop.args == {"reason": "end", "last_seq": 19}
+    thread.join(timeout=TIMEOUT)
+    assert not thread.is_alive() and not errors
+    assert gt.qsize() == 20
+
+
+def test_recorder_writes_trajectories_and_points(tmp_path):
+    from fmapping.ply import read_ply
+    from fmapping.trajectory import read_tum_trajectory
+    from services.io.record import Recorder
+
+    rec = Recorder(tmp_path, source="tracker")
+    rng = np.random.default_rng(0)
+    for i in (2, 0, 1):
+        c2w = np.eye(4)
+        c2w[:3, 3] = [i, 2 * i, 0.5]
+        rec.on_pose(P.Pose(seq=i, timestamp=10.0 + i, c2w=c2w, source="tracker"))
+        rec.on_pose(P.Pose(seq=i, timestamp=10.0 + i, c2w=np.eye(4), source="gt"))
+    pts = rng.standard_normal((30, 3)).astype(np.float32)
+    rec.on_points(P.PointsSnapshot(version=2, points=pts, colors=np.full((30, 3), 7, np.uint8)))
+    rec.on_points(P.PointsSnapshot(version=1, points=pts[:3], colors=np.zeros((3, 3), np.uint8)))  # older: ignored
+    summary = rec.write()
+    ts, c2w = read_tum_trajectory(tmp_path / "traj.txt")
+    np.testing.assert_allclose(ts, [10, 11, 12])
+    np.testing.assert_allclose(c2w[:, :3, 3], [[0, 0, 0.5], [1, 2, 0.5], [2, 4, 0.5]], atol=1e-9)
+    assert (tmp_path / "traj_gt.txt").is_file() and summary["poses"] == {"gt": 3, "tracker": 3}
+    ply = read_ply(tmp_path / "points.ply")
+    np.testing.assert_allclose(ply.points, pts, atol=1e-6)
+
+
+def test_publish_poses_example_matches_frames_by_time():
+    sys.path.insert(0, str(ROOT / "examples"))
+    try:
+        from publish_poses import PoseFeeder
+    finally:
+        sys.path.pop(0)
+    c2w = np.stack([np.eye(4)] * 3)
+    c2w[:, 0, 3] = [0.0, 1.0, 2.0]
+    feed = PoseFeeder(np.array([0.0, 0.1, 0.2]), c2w, max_dt=0.02)
+    p = feed.pose_for(5, 0.105)
+    assert p.seq == 5 and p.timestamp == 0.105 and p.c2w[0, 3] == 1.0 and p.quality is None
+    assert feed.pose_for(6, 0.5).quality == 0.0 and (feed.matched, feed.missing) == (1, 1)
+
+
+# ---------------------------------------------------------------------------- processes
+def _env():
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    return env
+
+
+def test_service_entry_points_have_help():
+    r = subprocess.run([sys.executable, "-m", "services.io", "--help"], cwd=ROOT, env=_env(), capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0 and "play" in r.stdout and "record" in r.stdout
+    from services.io import play, record, view
+    from services.mapper.__main__ import build_parser as mp
+    from services.tracker.__main__ import build_parser as tp
+
+    import argparse
+
+    for add in (play.add_args, view.add_args, record.add_args):
+        with pytest.raises(SystemExit) as e:
+            add(argparse.ArgumentParser()).parse_args(["--help"])
+        assert e.value.code == 0
+    for build in (mp, tp):
+        with pytest.raises(SystemExit) as e:
+            build().parse_args(["--help"])
+        assert e.value.code == 0
+
+
+def test_sigterm_during_a_mapping_window_stops_within_5_seconds(dataset, tmp_path):
+    """The mapper gets SIGTERM while busy in its init stage: it aborts the update, writes its
+    trajectory and exits within 5 s (the heartbeat thread keeps reporting while it is busy)."""
+    import json
+
+    import yaml
+
+    cfg = tmp_path / "slow.yaml"
+    cfg.write_text(yaml.safe_dump(dict(SMALL_MAPPER, init_iters_per_round=100000)))  # an init that never ends
+    status = tmp_path / "mapper.json"
+    ep = f"tcp/127.0.0.1:{C.free_port()}"
+    p = subprocess.Popen([sys.executable, "-m", "services.mapper", "--listen", ep, "--ns", "t5", "--config", str(cfg),
+                          "--status-file", str(status), "--out", str(tmp_path / "out"), "--status-interval", "0.2"],
+                         cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    s = None
+    try:
+        end = time.monotonic() + 120
+        while not status.exists():  # the status file appears once the service is up
+            assert p.poll() is None, p.stdout.read().decode()
+            assert time.monotonic() < end, "service did not start"
+            time.sleep(0.05)
+        s = zenoh.open(_conf(connect=[ep]))
+        keys = P.Keys("t5")
+        pf = s.declare_publisher(keys.frames, congestion_control=zenoh.CongestionControl.BLOCK)
+        pp = s.declare_publisher(keys.poses("gt"), congestion_control=zenoh.CongestionControl.BLOCK)
+        _wait_matching(pf)
+        for i in range(4):
+            f = dataset[i]
+            pp.put(P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
+            pf.put(P.encode(P.frame_from_dataset(f, seq=i)))
+
+        def busy_in_init():
+            try:
+                c = json.loads(status.read_text())["counters"]
+            except (OSError, ValueError, KeyError):
+                return False
+            return c.get("frames_received", 0) >= 4 and "updates_init" not in c
+
+        while not busy_in_init():
+            assert p.poll() is None and time.monotonic() < end, "mapper never started its init stage"
+            time.sleep(0.05)
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGTERM)
+        rc = p.wait(timeout=30)
+        took = time.monotonic() - t0
+        log = p.stdout.read().decode()
+        assert rc == 0 and took < 5.0, (took, log)
+        assert "during an update" in log
+        assert json.loads(status.read_text())["state"] == "done"
+        assert (tmp_path / "out" / "traj.txt").is_file() and (tmp_path / "out" / "stats.json").is_file()
+    finally:
+        if s is not None:
+            s.close()
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+
+
+@pytest.mark.slow
+def test_fmapping_up_end_to_end(scene, tmp_path):
+    import yaml
+
+    from fmapping.trajectory import read_tum_trajectory
+
+    cfg = tmp_path / "up.yaml"
+    cfg.write_text(yaml.safe_dump({"mapper": SMALL_MAPPER, "launcher": {"timeout": 240, "threads": 1}}))
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "fmapping.cli", "up", "--data", str(scene), "--poses", "gt",
+                        "--out", str(out), "--config", str(cfg)], cwd=ROOT, env=_env(), capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    for name in ("map.ply", "mesh.ply", "traj.txt", "run.rrd", "stats.json", "record/traj.txt", "up.json"):
+        assert (out / name).is_file(), name
+    ts, _ = read_tum_trajectory(out / "traj.txt")
+    assert len(ts) == 14
+    ts_rec, c2w_rec = read_tum_trajectory(out / "record" / "traj.txt")  # the GT poses as streamed
+    from fmapping.datasets import open_dataset
+
+    ds = open_dataset(scene)
+    np.testing.assert_allclose(c2w_rec, np.stack([ds[i].c2w for i in range(len(ds))]), atol=1e-6)
+    assert (out / "run.rrd").stat().st_size > 1000
+
+
+def test_docker_compose_config_validates():
+    tool = shutil.which("docker-compose")
+    if tool is None:
+        pytest.skip("docker-compose not installed")
+    r = subprocess.run([tool, "-f", str(ROOT / "docker-compose.yml"), "config", "-q"], cwd=ROOT, capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
