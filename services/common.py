@@ -73,15 +73,18 @@ def _insert(conf: zenoh.Config, key: str, value: Any) -> None:
         raise ValueError(f"zenoh config: cannot set {key} = {value!r}: {e}") from None
 
 
-def zenoh_config(mode: str = "peer", listen: Optional[list[str]] = None, connect: Optional[list[str]] = None,
-                 multicast: bool = False, options: Optional[dict] = None,
+def zenoh_config(mode: Optional[str] = "peer", listen: Optional[list[str]] = None,
+                 connect: Optional[list[str]] = None, multicast: Optional[bool] = False, options: Optional[dict] = None,
                  base: Optional[zenoh.Config] = None) -> zenoh.Config:
     """A zenoh config with explicit endpoints; ``options`` maps JSON5 key paths to values."""
     conf = base if base is not None else zenoh.Config()
-    if mode not in ("peer", "client", "router"):
-        raise ValueError(f"zenoh mode must be peer, client or router, got {mode!r}")
-    _insert(conf, "mode", mode)
-    _insert(conf, "scouting/multicast/enabled", bool(multicast))
+    # None keeps what ``base`` (a native JSON5 file) says
+    if mode is not None:
+        if mode not in ("peer", "client", "router"):
+            raise ValueError(f"zenoh mode must be peer, client or router, got {mode!r}")
+        _insert(conf, "mode", mode)
+    if multicast is not None:
+        _insert(conf, "scouting/multicast/enabled", bool(multicast))
     if listen is not None:
         _insert(conf, "listen/endpoints", list(listen))
     if connect is not None:
@@ -101,7 +104,8 @@ def resolve_network(args) -> dict:
         if not path.is_file():
             raise FileNotFoundError(f"zenoh config not found: {path}")
         if path.suffix in (".json5", ".json"):
-            net["native"] = str(path)
+            # a native file keeps its own mode and scouting unless the command line says otherwise
+            net.update(native=str(path), mode=None, multicast=None)
         else:
             try:
                 data = yaml.safe_load(path.read_text()) or {}
