@@ -5,9 +5,11 @@ this way: run the mapper with ``--poses external`` and publish, for every frame,
 with that frame's ``seq`` on ``fmapping/<ns>/poses/external``. This script does it from a
 file: it listens to ``fmapping/<ns>/frames`` and answers each frame with the trajectory
 pose nearest in time (within ``--max-dt`` seconds). A frame without a pose gets
-``quality = 0`` (the mapper skips it instead of waiting). It publishes its status as
-service ``external`` (``fmapping up --poses external`` makes play wait for it) and stops
-on the end-of-sequence control.
+``quality = 0`` (the mapper skips it instead of waiting). It publishes its status under
+the name of the pose source, ``fmapping/<ns>/status/external`` (``fmapping up --poses
+external`` makes play wait for a service called ``external``; with TLS access control the
+producer's certificate must be allowed to put ``poses/external`` and ``status/external``),
+and stops on the end-of-sequence control.
 
     python examples/publish_poses.py --traj traj.txt --connect tcp/127.0.0.1:7447 --ns myrun
 
@@ -48,18 +50,26 @@ class PoseFeeder:
         return P.Pose(seq=frame_seq, timestamp=frame_ts, c2w=np.array(self.c2w[j], np.float64), source=self.source)
 
 
+def status_name(source: str) -> str:
+    """The service name this producer reports as: its pose source (status/<source> next to poses/<source>,
+    the name ``fmapping up --poses external`` makes play wait for)."""
+    P.Keys().poses(source)  # a valid key part, or ProtocolError
+    return source
+
+
 def main(argv=None) -> int:
     from services.common import Service, add_common_args, setup_logging
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--traj", required=True, help="TUM trajectory: timestamp tx ty tz qx qy qz qw")
     ap.add_argument("--max-dt", type=float, default=0.02, help="max |frame time - pose time| in seconds")
-    ap.add_argument("--source", default="external")
+    ap.add_argument("--source", default="external",
+                    help="pose source: poses on poses/<source>, status on status/<source> (the mapper's --poses)")
     args = add_common_args(ap).parse_args(argv)
     setup_logging(args.log_level, "external")
     ts, c2w = read_tum_trajectory(args.traj)
     feeder = PoseFeeder(ts, c2w, args.max_dt, args.source)
-    svc = Service("external", args, capacities={"control": 16, "frames": 64})
+    svc = Service(status_name(args.source), args, capacities={"control": 16, "frames": 64})
     try:
         svc.subscribe(svc.keys.control, "control")
         svc.subscribe(svc.keys.frames, "frames")

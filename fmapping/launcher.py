@@ -42,6 +42,7 @@ from typing import Optional
 import yaml
 
 SECTIONS = ("mapper", "tracker", "launcher")
+EXTERNAL_SOURCE = "external"  # pose source and status name of an external producer (poses/external, status/external)
 
 
 @dataclass
@@ -258,13 +259,13 @@ def run_up(args) -> int:
             procs["tracker"] = Proc("tracker", targv, out, env)
             later.append(procs["tracker"])
         _wait_ready(later, opts.start_timeout)
-        wait_for = ["mapper", "record"] + (["view"] if opts.view else []) + (["tracker"] if poses == "tracker" else [])
+        wait_for = play_wait_for(poses, opts.view)
         play_start_timeout = opts.start_timeout
         if poses == "external":
-            wait_for.append("external")
             play_start_timeout = 3600.0
             print("fmapping up: waiting for an external pose producer, e.g.\n"
-                  f"  {sys.executable} examples/publish_poses.py --traj TRAJ.txt --connect {mesh[0]} --ns {ns}",
+                  f"  {sys.executable} examples/publish_poses.py --traj TRAJ.txt --source {EXTERNAL_SOURCE} "
+                  f"--connect {mesh[0]} --ns {ns}",
                   flush=True)
         play_argv = py + ["services.io", "play", "--data", str(data), "--fps", str(args.fps or 0),
                           "--window", str(opts.window), "--ack-from", "mapper", "--wait-for", ",".join(wait_for),
@@ -280,6 +281,18 @@ def run_up(args) -> int:
             p.close()
         for sig, h in old_handlers.items():
             signal.signal(sig, h)
+
+
+def play_wait_for(poses: str, view: bool = True) -> list[str]:
+    """The services ``io play`` waits for before the first frame. With ``--poses external`` that
+    includes the producer, which reports its status as its pose source (``status/external``, see
+    ``examples/publish_poses.py``)."""
+    names = ["mapper", "record"] + (["view"] if view else [])
+    if poses == "tracker":
+        names.append("tracker")
+    elif poses == "external":
+        names.append(EXTERNAL_SOURCE)
+    return names
 
 
 def threading_main() -> bool:

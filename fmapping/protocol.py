@@ -319,10 +319,13 @@ def _unpack_array(d: Any, where: str, max_bytes: int) -> np.ndarray:
         raise ProtocolError(f"{where}: shape must be a list of at most {MAX_ARRAY_NDIM} integers, got {shape!r}")
     dims = [_int(s, f"{where}.shape", 0, 2 ** 31) for s in shape]
     dt = np.dtype(name).newbyteorder("<")
-    count = int(np.prod(dims, dtype=np.int64)) if dims else 1
+    # Python integers: an int64 product of six 2**31 dimensions would wrap around (to 0)
+    count = math.prod(dims)
     nbytes = count * dt.itemsize
     if nbytes > max_bytes:
         raise ProtocolError(f"{where}: array of shape {tuple(dims)} {name} ({nbytes} bytes) exceeds the {max_bytes}-byte limit")
+    if math.prod(d for d in dims if d) * dt.itemsize > max_bytes:  # e.g. (0, 2**31, 2**31): empty but unrepresentable
+        raise ProtocolError(f"{where}: empty array of shape {tuple(dims)} has dimensions beyond the {max_bytes}-byte limit")
     data = d["data"]
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise ProtocolError(f"{where}.data: expected raw bytes, got {type(data).__name__}")
@@ -359,6 +362,15 @@ def _check_camera(cam: Any, where: str, width: int, height: int) -> dict:
     if extra:
         raise ProtocolError(f"{where}: unknown keys {sorted(extra)}")
     return out
+
+
+def check_camera(cam: Any, where: str = "camera") -> dict:
+    """Validate a camera dict on its own (a Frame checks it against its image size); returns its
+    normal form (floats, ints, ``dist`` None or a list) or raises ProtocolError."""
+    if not isinstance(cam, dict):
+        raise ProtocolError(f"{where}: expected a map, got {type(cam).__name__}")
+    size = [_int(cam.get(k), f"{where}.{k}", 1, MAX_IMAGE_SIDE) for k in ("width", "height")]
+    return _check_camera(cam, where, *size)
 
 
 def _check_pose_matrix(m: np.ndarray, where: str) -> np.ndarray:

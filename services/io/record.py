@@ -75,6 +75,36 @@ class Recorder:
         return summary
 
 
+def handle_message(svc: Service, rec: Recorder, peers: Peers, channel: str, key: str, data: bytes,
+                   wait_done=()) -> Optional[str]:
+    """Decode and apply one payload of ``channel`` (poses | points | status | control); a bad one is
+    counted (``decode_errors``, ``bad_input``) and changes nothing. Returns 'end' or 'stop' when the
+    recording should finish."""
+    if channel == "poses":
+        msg = svc.decode(data, P.Pose, key)
+        if msg is not None:
+            rec.on_pose(msg)
+            svc.counters.inc(f"poses_{msg.source}")
+            svc.status.update(frame_seq=msg.seq)
+    elif channel == "points":
+        msg = svc.decode(data, P.PointsSnapshot, key)
+        if msg is not None:
+            rec.on_points(msg)
+            svc.counters.set("points", len(msg.points))
+    elif channel == "status":
+        msg = svc.decode(data, P.Status, key)
+        if msg is not None:
+            peers.update(msg)
+    elif channel == "control":
+        msg = svc.decode(data, P.Control, key)
+        if msg is not None and svc.addressed(msg):
+            if msg.command == "save":
+                rec.write()
+            elif msg.command == "stop":
+                return "end" if msg.args.get("reason") == "end" and wait_done else "stop"
+    return None
+
+
 def run(svc: Service, args) -> int:
     rec = Recorder(args.out, args.source, args.max_poses)
     peers = Peers()
@@ -88,37 +118,11 @@ def run(svc: Service, args) -> int:
     svc.start_heartbeat()
     end_deadline: Optional[float] = None
 
-    def handle(channel: str, key: str, data: bytes) -> Optional[str]:
-        """Apply one message; returns 'end' or 'stop' when the recording should finish."""
-        if channel == "poses":
-            msg = svc.decode(data, P.Pose, key)
-            if msg is not None:
-                rec.on_pose(msg)
-                svc.counters.inc(f"poses_{msg.source}")
-                svc.status.update(frame_seq=msg.seq)
-        elif channel == "points":
-            msg = svc.decode(data, P.PointsSnapshot, key)
-            if msg is not None:
-                rec.on_points(msg)
-                svc.counters.set("points", len(msg.points))
-        elif channel == "status":
-            msg = svc.decode(data, P.Status, key)
-            if msg is not None:
-                peers.update(msg)
-        elif channel == "control":
-            msg = svc.decode(data, P.Control, key)
-            if msg is not None and svc.addressed(msg):
-                if msg.command == "save":
-                    rec.write()
-                elif msg.command == "stop":
-                    return "end" if msg.args.get("reason") == "end" and wait_done else "stop"
-        return None
-
     while not svc.shutdown.requested:
         item = svc.inbox.get(timeout=0.1)
         if item is not None:
             channel, (key, data) = item
-            what = handle(channel, key, data)
+            what = handle_message(svc, rec, peers, channel, key, data, wait_done)
             if what == "stop":
                 break
             if what == "end" and end_deadline is None:
@@ -133,7 +137,7 @@ def run(svc: Service, args) -> int:
     # what is already queued (e.g. the final points published just before 'done') still counts
     while (item := svc.inbox.get(timeout=0)) is not None:
         channel, (key, data) = item
-        handle(channel, key, data)
+        handle_message(svc, rec, peers, channel, key, data, wait_done)
     summary = rec.write()
     svc.log.info("wrote %s", ", ".join(summary["files"]) or "nothing (no poses, no points)")
     return 0

@@ -146,6 +146,38 @@ def open_recording(args):
     return rec
 
 
+def handle_message(svc: Service, view: Viewer, peers: Peers, channel: str, key: str, data: bytes,
+                   wait_done=()) -> Optional[str]:
+    """Decode one payload of ``channel`` and log it; a bad one is counted (``decode_errors``,
+    ``bad_input``) and logs nothing. Returns 'end' or 'stop' when the view should finish."""
+    decoders = {"frames": (P.Frame, view.on_frame), "poses": (P.Pose, view.on_pose),
+                "points": (P.PointsSnapshot, view.on_points), "field": (P.FieldSnapshot, view.on_field)}
+    if channel in decoders:
+        cls, fn = decoders[channel]
+        msg = svc.decode(data, cls, key)
+        if msg is not None:
+            try:
+                fn(msg)
+                svc.counters.inc(f"logged_{channel}")
+                if channel == "frames":
+                    svc.status.update(frame_seq=msg.seq)
+            except Exception as e:  # a rerun failure must not kill the service
+                svc.counters.inc("log_errors")
+                svc.status.error(f"rerun: {e}")
+                svc.log.exception("rerun logging failed")
+    elif channel == "status":
+        msg = svc.decode(data, P.Status, key)
+        if msg is not None:
+            peers.update(msg)
+            if msg.service != svc.name:
+                view.on_status(msg)
+    elif channel == "control":
+        msg = svc.decode(data, P.Control, key)
+        if msg is not None and svc.addressed(msg) and msg.command == "stop":
+            return "end" if msg.args.get("reason") == "end" and wait_done else "stop"
+    return None
+
+
 def run(svc: Service, args, rec) -> int:
     view = Viewer(rec, args.primary, args.image_every, args.depth_every, args.jpeg_quality)
     peers = Peers()
@@ -156,41 +188,13 @@ def run(svc: Service, args, rec) -> int:
     svc.status.update(state="running")
     svc.publish_status()
     svc.start_heartbeat()
-    decoders = {"frames": (P.Frame, view.on_frame), "poses": (P.Pose, view.on_pose),
-                "points": (P.PointsSnapshot, view.on_points), "field": (P.FieldSnapshot, view.on_field)}
     end_deadline: Optional[float] = None
-
-    def handle(channel: str, key: str, data: bytes) -> Optional[str]:
-        if channel in decoders:
-            cls, fn = decoders[channel]
-            msg = svc.decode(data, cls, key)
-            if msg is not None:
-                try:
-                    fn(msg)
-                    svc.counters.inc(f"logged_{channel}")
-                    if channel == "frames":
-                        svc.status.update(frame_seq=msg.seq)
-                except Exception as e:  # a rerun failure must not kill the service
-                    svc.counters.inc("log_errors")
-                    svc.status.error(f"rerun: {e}")
-                    svc.log.exception("rerun logging failed")
-        elif channel == "status":
-            msg = svc.decode(data, P.Status, key)
-            if msg is not None:
-                peers.update(msg)
-                if msg.service != svc.name:
-                    view.on_status(msg)
-        elif channel == "control":
-            msg = svc.decode(data, P.Control, key)
-            if msg is not None and svc.addressed(msg) and msg.command == "stop":
-                return "end" if msg.args.get("reason") == "end" and wait_done else "stop"
-        return None
 
     while not svc.shutdown.requested:
         item = svc.inbox.get(timeout=0.1)
         if item is not None:
             channel, (key, data) = item
-            what = handle(channel, key, data)
+            what = handle_message(svc, view, peers, channel, key, data, wait_done)
             if what == "stop":
                 break
             if what == "end" and end_deadline is None:
@@ -202,7 +206,7 @@ def run(svc: Service, args, rec) -> int:
                 break
     while (item := svc.inbox.get(timeout=0)) is not None:
         channel, (key, data) = item
-        handle(channel, key, data)
+        handle_message(svc, view, peers, channel, key, data, wait_done)
     view.finish()
     if not args.save and not args.exit_at_end and not svc.shutdown.requested:
         svc.log.info("sequence ended; still serving the viewer (Ctrl-C to quit)")

@@ -165,6 +165,7 @@ class MapperCore:
             msg = P.decode(data, expect)
         except P.ProtocolError as e:
             self.counters.inc("decode_errors")
+            self.counters.inc("bad_input")
             self.last_error = f"{key or channel}: {e}"
             if self.on_bad_input is not None:
                 self.on_bad_input(self.last_error)
@@ -181,7 +182,11 @@ class MapperCore:
         raise ValueError(f"MapperCore: unexpected message {type(msg).__name__}")
 
     def on_frame(self, f: P.Frame) -> list[Output]:
-        if self.camera_dict is None:
+        if self.camera_dict is None:  # the first frame fixes the camera: only one the mapper can use
+            why = _unusable_camera(f.camera)
+            if why:
+                self._reject(f"frame {f.seq}: {why}")
+                return []
             self.camera_dict = dict(f.camera)
         elif f.camera != self.camera_dict:
             self._reject(f"frame {f.seq}: camera {f.camera} differs from the first frame's {self.camera_dict}")
@@ -238,6 +243,7 @@ class MapperCore:
 
     def _reject(self, why: str) -> None:
         self.counters.inc("rejected_frames")
+        self.counters.inc("bad_input")
         self.last_error = why
         if self.on_bad_input is not None:
             self.on_bad_input(why)
@@ -537,6 +543,9 @@ class MapperCore:
         self.windows = int(svc["windows"])
         self.resumed_from = str(path)
         self.counters.set("resumed_at_seq", self.last_seq)
+        self.counters.set("resumed_windows", self.windows)
+        self.counters.set("windows", self.windows)
+        self.counters.inc("resumes")
         if mapper.field is not None:
             self.field_snapshot(bump=False)
         return True
@@ -607,6 +616,20 @@ def _bounded(pts: np.ndarray, cols: np.ndarray, max_points: int, seed: int) -> t
         idx = np.sort(np.random.default_rng(seed).choice(len(pts), limit, replace=False))
         pts, cols = pts[idx], cols[idx]
     return np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(cols.reshape(-1, 3), np.uint8)
+
+
+def _unusable_camera(cam: dict) -> str:
+    """Why :class:`fmapping.mapper.Mapper` cannot map frames of this camera ('' when it can)."""
+    from fmapping.camera import PinholeCamera
+
+    if cam.get("dist"):
+        return (f"camera has distortion coefficients {cam['dist']}; the mapper needs undistorted frames "
+                "(the player undistorts)")
+    try:
+        PinholeCamera.from_dict(cam)
+    except (TypeError, ValueError, KeyError) as e:
+        return f"unusable camera {cam}: {e}"
+    return ""
 
 
 def _rigid(m: np.ndarray) -> np.ndarray:

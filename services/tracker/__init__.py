@@ -158,13 +158,19 @@ class TrackerCore:
 
     def _bad(self, why: str, counter: str = "rejected") -> None:
         self.counters.inc(counter)
+        self.counters.inc("bad_input")
         self.last_error = why
         if self.on_bad_input is not None:
             self.on_bad_input(why)
 
     def on_frame(self, f: P.Frame) -> list[Output]:
         if self.camera_dict is None:
-            self._set_camera(f.camera)
+            try:
+                self._set_camera(_check_camera(f.camera))
+            except (TypeError, ValueError, KeyError) as e:
+                self.camera_dict = self.camera = self.tracker = None
+                self._bad(f"frame {f.seq}: unusable camera {f.camera}: {e}", "rejected_frames")
+                return []
         elif f.camera != self.camera_dict:
             self._bad(f"frame {f.seq}: camera {f.camera} differs from {self.camera_dict}", "rejected_frames")
             return []
@@ -184,17 +190,15 @@ class TrackerCore:
         if s.version <= self.version and self.field is not None:
             self.counters.inc("stale_snapshots")
             return []
-        from fmapping.field import FieldConfig, field_from_snapshot
-
-        try:
-            fcfg = dataclasses.replace(FieldConfig(), **dict(s.config.get("field", {})))
-            field = field_from_snapshot(fcfg, {k: np.array(v) for k, v in s.arrays.items()})
-        except (TypeError, ValueError, KeyError) as e:
-            self._bad(f"field snapshot v{s.version}: {e}", "rejected_snapshots")
+        try:  # everything is checked and built before any state changes
+            field, render_cfg, cam = self._from_snapshot(s)
+        except (TypeError, ValueError, KeyError, RuntimeError, OverflowError) as e:
+            self._bad(f"field snapshot v{s.version}: {type(e).__name__}: {e}", "rejected_snapshots")
             return []
+        if self.camera_dict is None and cam is not None:
+            self._set_camera(cam)
         self.field = field.eval()
-        self.render_cfg = {k: s.config.get(k, d) for k, d in (("near", 0.1), ("far", 6.0), ("n_coarse", 32),
-                                                               ("n_fine", 16))}
+        self.render_cfg = render_cfg
         self.version = s.version
         self.map_seq = max(self.map_seq, s.frame_seq)
         if s.frame_c2w is not None and s.frame_seq >= 0:
@@ -202,9 +206,49 @@ class TrackerCore:
         self._ref_target = s.frame_seq if s.frame_seq >= 0 else None
         self.counters.set("field_version", s.version)
         self.counters.inc("snapshots")
-        if self.camera_dict is None and isinstance(s.config.get("camera"), dict):
-            self._set_camera(s.config["camera"])
         return self._advance()
+
+    def _from_snapshot(self, s: P.FieldSnapshot):
+        """(field, render config, camera dict or None) of a snapshot, or ValueError / TypeError / KeyError
+        naming what does not fit: the field config, its size against the arrays carried, the render
+        settings, the camera (which must be the frames' camera once that is known)."""
+        from fmapping.field import FieldConfig, field_from_snapshot
+
+        fdict = s.config.get("field", {})
+        if not isinstance(fdict, dict):
+            raise ValueError(f"config.field must be a map, got {type(fdict).__name__}")
+        default = FieldConfig()
+        for k, v in fdict.items():  # unknown keys: dataclasses.replace raises TypeError
+            want = type(getattr(default, k, None))
+            ok = isinstance(v, want) and (want is bool or not isinstance(v, bool)) or \
+                (want is float and isinstance(v, int) and not isinstance(v, bool))
+            if hasattr(default, k) and not ok:
+                raise ValueError(f"config.field.{k} must be {want.__name__}, got {v!r}")
+        fcfg = dataclasses.replace(default, **fdict)
+        fcfg.validate()
+        need, have = min_field_elements(fcfg), sum(int(a.size) for a in s.arrays.values())
+        if need > have:  # checked before building: a forged config must not allocate gigabytes
+            raise ValueError(f"config.field needs at least {need} parameters, the snapshot carries {have}")
+        rc = {}
+        for k, d, lo, hi in (("near", 0.1, 0.0, 1e4), ("far", 6.0, 0.0, 1e4)):
+            v = s.config.get(k, d)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v <= hi:
+                raise ValueError(f"config.{k} must be a number in [{lo}, {hi}], got {v!r}")
+            rc[k] = float(v)
+        if not rc["near"] < rc["far"]:
+            raise ValueError(f"config: need near < far, got {rc['near']} and {rc['far']}")
+        for k, d, lo, hi in (("n_coarse", 32, 2, 1024), ("n_fine", 16, 0, 1024)):
+            v = s.config.get(k, d)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise ValueError(f"config.{k} must be an integer in [{lo}, {hi}], got {v!r}")
+            rc[k] = int(v)
+        cam = s.config.get("camera")
+        if cam is not None:
+            cam = _check_camera(cam)
+            if self.camera_dict is not None and cam != self.camera_dict:
+                raise ValueError(f"config.camera {cam} is not the frames' camera {self.camera_dict}")
+        field = field_from_snapshot(fcfg, {k: np.array(v) for k, v in s.arrays.items()})
+        return field, rc, cam
 
     def on_pose(self, p: P.Pose) -> list[Output]:
         if p.source != "mapper":
@@ -383,6 +427,36 @@ class TrackerCore:
             self.counters.inc("keyframe_requests")
             self._make_reference(f.seq)
         return self._emit(f.seq, f.timestamp, res.c2w, float(max(res.inlier_ratio, 1e-6)))
+
+
+def _check_camera(cam) -> dict:
+    """A camera dict (protocol Frame.camera form) usable by the tracker, or ValueError."""
+    from fmapping.camera import PinholeCamera
+
+    try:
+        out = P.check_camera(cam, "camera")
+    except P.ProtocolError as e:
+        raise ValueError(str(e)) from None
+    PinholeCamera.from_dict(out)  # its own validation
+    return out
+
+
+def min_field_elements(cfg) -> int:
+    """A lower bound on the number of parameters of the field ``cfg`` describes (the dominant
+    tensors of each kind, see ``fmapping.field``), computed without building it."""
+    kind = cfg.kind
+    if kind == "cp":
+        return 3 * (cfg.density_components + cfg.appearance_components) * cfg.resolution \
+            + cfg.app_features * cfg.hidden
+    if kind == "vm":
+        return 3 * (cfg.vm_density_components + cfg.vm_appearance_components) * cfg.resolution * cfg.resolution \
+            + cfg.app_features * cfg.hidden
+    if kind == "grid":
+        return (1 + cfg.grid_features) * cfg.grid_resolution ** 3 + cfg.grid_features * cfg.hidden
+    if kind == "mlp":
+        d_in = 3 * (1 + 2 * cfg.pe_freqs)
+        return d_in * cfg.mlp_width + max(0, cfg.mlp_layers - 1) * cfg.mlp_width ** 2
+    raise ValueError(f"unknown field kind {kind!r}")
 
 
 def _rigid(m: np.ndarray) -> np.ndarray:

@@ -88,8 +88,11 @@ def serve(svc: Service, cfg, opts: TrackerServiceOptions, args) -> int:
 
 
 if __name__ == "__main__":
+    from services.common import exit_process
+
     try:
-        sys.exit(main())
+        code = main()
     except (FileNotFoundError, ValueError) as e:
         print(f"services.tracker: error: {e}", file=sys.stderr)
-        sys.exit(2)
+        code = 2
+    exit_process(code)  # outputs are written: skip the slow interpreter teardown

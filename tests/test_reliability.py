@@ -1,0 +1,1481 @@
+"""Reliability (issue 6, "Faults and load"): fuzzed input to every service core and through
+zenoh, overload with bounded queues and flat memory, kill -9 and restart of the mapper and the
+tracker, SIGTERM / SIGINT shutdown of every service, CPU determinism.
+
+Numbers these tests measure are printed (``pytest -s``) and summarised in docs/reliability.md.
+Every wait is a poll of a file / status / queue against a deadline, never a bare sleep.
+"""
+from __future__ import annotations
+
+import collections
+import dataclasses
+import hashlib
+import json
+import os
+import pickle
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Callable, Optional
+
+import msgpack
+import numpy as np
+import pytest
+import torch
+
+zenoh = pytest.importorskip("zenoh")
+
+from fmapping import protocol as P  # noqa: E402
+from services import common as C  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+TIMEOUT = 60.0
+N_FUZZ = 10_000
+
+SMALL_MAPPER = {
+    "init_frames": 4, "init_rounds": [[0, 16], [3, 16]], "init_iters_per_round": 4,
+    "window_size": 6, "n_global_keyframes": 2, "new_frames_per_window": 2, "iters_per_window": 2,
+    "keyframe_every": 2, "rays_per_iter": 96, "n_coarse": 12, "n_fine": 4, "final_global_iters": 2,
+    "device": "cpu", "seed": 0,
+    "field": {"resolution": 12, "density_components": 4, "appearance_components": 4, "app_features": 8, "hidden": 8},
+}
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    from fmapping.synthetic import generate_scene
+
+    out = tmp_path_factory.mktemp("scene") / "s"
+    generate_scene(out, seed=2, frames=14, size=(64, 48), max_cloud_points=2000, mesh_spacing=0.2)
+    return out
+
+
+@pytest.fixture(scope="module")
+def dataset(scene):
+    from fmapping.datasets import open_dataset
+
+    return open_dataset(scene)
+
+
+def small_cfg(**over):
+    from fmapping.config import merge
+    from fmapping.mapper import MapperConfig
+
+    return merge(MapperConfig(), dict(SMALL_MAPPER, **over))
+
+
+def _feed(core, ds, ids, source="gt"):
+    outs = []
+    for i in ids:
+        f = ds[i]
+        outs += core.handle("poses", P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source=source)))
+        outs += core.handle("frames", P.encode(P.frame_from_dataset(f, seq=i)))
+    return outs
+
+
+# ============================================================================ fuzz generator
+def _raw(msg) -> dict:
+    return msgpack.unpackb(P.encode(msg), raw=False)
+
+
+def _pack(obj) -> bytes:
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+def _arr(a: np.ndarray) -> dict:
+    return {"dtype": a.dtype.name, "shape": list(a.shape), "data": a.tobytes()}
+
+
+NAN, INF = float("nan"), float("inf")
+BAD_INT = [-7, -(2 ** 63), 2 ** 63, 2 ** 64 - 1, "3", 1.5, None, True, [1], {"a": 1}, b"\x01"]
+BAD_FLOAT = [NAN, INF, -INF, "1.0", None, True, [0.5], {"x": 1.0}, b"\x00"]
+BAD_NAME = ["", "gt/evil", "a" * 65, "white space", "*", "**", "\u00e9t\u00e9", 5, None, ["gt"], b"gt"]
+BAD_DTYPE = ["float16", "object", "complex64", "int8", "<f4", "bool", "O", "V8", "", 5, None, ["uint8"]]
+# the fields of each message and how to spoil them (None marks an optional field: None is valid there)
+SCHEMA = {
+    "Frame": {"seq": "int0", "timestamp": "float", "rgb": "array", "camera": "camera", "depth": "array?"},
+    "Pose": {"seq": "int-1", "timestamp": "float", "c2w": "pose", "source": "name", "covariance": "array?",
+             "quality": "float?"},
+    "FieldSnapshot": {"version": "int0", "kind": "name", "config": "map", "aabb": "aabb", "arrays": "arrays",
+                      "frame_seq": "int-1", "timestamp": "float", "frame_c2w": "pose?"},
+    "PointsSnapshot": {"version": "int0", "points": "array", "colors": "array", "frame_seq": "int-1"},
+    "Status": {"service": "name", "seq": "int0", "time": "float", "state": "name", "frame_seq": "int-1",
+               "lag": "float", "counters": "counters", "last_error": "text"},
+    "Control": {"command": "command", "args": "map"},
+}
+REQUIRED = {"Frame": ("seq", "timestamp", "rgb", "camera"), "Pose": ("seq", "timestamp", "c2w"),
+            "FieldSnapshot": ("version", "kind", "config", "aabb", "arrays"),
+            "PointsSnapshot": ("version", "points", "colors"), "Status": ("service",), "Control": ("command",)}
+DEFAULT_ARRAYS = {("Frame", "depth"): lambda m: np.ones(m.rgb.shape[:2], np.float32),
+                  ("Pose", "covariance"): lambda m: np.eye(6),
+                  ("FieldSnapshot", "frame_c2w"): lambda m: np.eye(4)}
+
+
+def _deep(n: int):
+    d: dict = {"leaf": 1}
+    for _ in range(n):
+        d = {"a": d}
+    return d
+
+
+class Fuzzer:
+    """A seeded generator of payloads that every service must reject.
+
+    ``bases`` maps a channel to a valid message of the type that channel carries. Each
+    payload is a valid encoding spoiled in one way (a *category*); ``semantic`` maps a channel
+    to extra generators of messages that decode but are inconsistent with the service's
+    state (a frame of another size, a snapshot whose arrays do not fit its config, ...).
+    ``next(channel)`` returns (category, payload); ``decode_level(category)`` tells whether
+    :func:`fmapping.protocol.decode` itself must refuse it."""
+
+    def __init__(self, seed: int, bases: dict, semantic: Optional[dict] = None):
+        self.rng = np.random.default_rng(seed)
+        self.bases = bases
+        self.semantic = semantic or {}
+        self.encoded = {ch: P.encode(m) for ch, m in bases.items()}
+        self.raws = {ch: _raw(m) for ch, m in bases.items()}
+        others = [P.Pose(seq=1, timestamp=0.0, c2w=np.eye(4), source="gt"), P.Control("stop"),
+                  P.Status(service="x"), P.PointsSnapshot(version=1, points=np.zeros((2, 3), np.float32),
+                                                          colors=np.zeros((2, 3), np.uint8)),
+                  P.Frame(seq=0, timestamp=0.0, rgb=np.zeros((2, 3, 3), np.uint8),
+                          camera={"fx": 1.0, "fy": 1.0, "cx": 1.0, "cy": 0.5, "width": 3, "height": 2})]
+        self.others = {type(m).__name__: P.encode(m) for m in others}
+        self.generic = [self.truncated, self.random_bytes, self.not_a_map, self.pickled, self.trailing, self.ext_type,
+                        self.int_keys, self.wrong_schema, self.other_message, self.wrong_version,
+                        self.missing_field, self.unknown_field, self.bad_value, self.bad_value, self.bad_array,
+                        self.bad_array, self.bad_array, self.nonfinite, self.nonfinite]
+
+    # -- helpers
+    def pick(self, seq):
+        return seq[int(self.rng.integers(len(seq)))]
+
+    def _copy(self, channel: str) -> dict:
+        return msgpack.unpackb(_pack(self.raws[channel]), raw=False)  # deep copy
+
+    def schema(self, channel: str) -> str:
+        return type(self.bases[channel]).__name__
+
+    # -- generic spoilers: (category, payload)
+    def truncated(self, ch):
+        enc = self.encoded[ch]
+        return "truncated", enc[: int(self.rng.integers(0, len(enc)))]
+
+    def random_bytes(self, ch):
+        data = self.rng.bytes(int(self.rng.integers(1, 300)))
+        if data[:2] in (b"\x80\x02", b"\x80\x03", b"\x80\x04", b"\x80\x05"):
+            data = b"\x00" + data
+        return "random_bytes", data
+
+    def not_a_map(self, ch):
+        v = self.pick([[1, 2, 3], 5, -1, 2.5, "Frame", b"\x00\x01", None, True, [self.raws[ch]]])
+        return "not_a_map", _pack(v)
+
+    def pickled(self, ch):
+        return "pickle", pickle.dumps(self.raws[ch], protocol=int(self.rng.integers(2, 6)))
+
+    def trailing(self, ch):
+        return "trailing_bytes", self.encoded[ch] + self.rng.bytes(int(self.rng.integers(1, 9)))
+
+    def ext_type(self, ch):
+        d = self._copy(ch)
+        d[self.pick(list(SCHEMA[self.schema(ch)]))] = msgpack.ExtType(int(self.rng.integers(0, 128)), b"xx")
+        return "ext_type", _pack(d)
+
+    def int_keys(self, ch):
+        d = self._copy(ch)
+        return "int_keys", _pack({**d, 7: 1})
+
+    def wrong_schema(self, ch):
+        d = self._copy(ch)
+        d["schema"] = self.pick(["Evil", "", "frame", "Frames", 3, None, ["Frame"], "Pose\x00"])
+        return "wrong_schema", _pack(d)
+
+    def other_message(self, ch):
+        name = self.pick(sorted(k for k in self.others if k != self.schema(ch)))
+        return "other_message", self.others[name]
+
+    def wrong_version(self, ch):
+        d = self._copy(ch)
+        if self.rng.random() < 0.15:
+            del d["v"]
+        else:
+            d["v"] = self.pick([0, 2, 99, -1, 2 ** 32, "1", 1.0, None, True, [1]])
+        return "wrong_version", _pack(d)
+
+    def missing_field(self, ch):
+        d = self._copy(ch)
+        del d[self.pick(list(REQUIRED[self.schema(ch)]) + ["schema"])]
+        return "missing_field", _pack(d)
+
+    def unknown_field(self, ch):
+        d = self._copy(ch)
+        d[self.pick(["extra", "__class__", "c2w_", "Seq", "data"])] = self.pick([1, "x", None, [1, 2]])
+        return "unknown_field", _pack(d)
+
+    def bad_value(self, ch):
+        """A scalar / map field given a value of the wrong type or out of range."""
+        d = self._copy(ch)
+        schema = self.schema(ch)
+        name, kind = self.pick([(k, v) for k, v in SCHEMA[schema].items() if "array" not in v and v not in
+                                ("pose", "pose?", "aabb", "arrays")])
+        opt = kind.endswith("?")
+        kind = kind.rstrip("?")
+        if kind in ("int0", "int-1"):
+            v = self.pick(BAD_INT)
+            kind = "int"
+        elif kind == "float":
+            v = self.pick([x for x in BAD_FLOAT if not (opt and x is None)])
+        elif kind == "name":
+            v = self.pick(BAD_NAME)
+        elif kind == "text":
+            v = self.pick(["x" * (P.MAX_STRING + 1), 5, None, ["a"]])
+        elif kind == "command":
+            v = self.pick(["explode", "STOP", "", "stop ", 5, None, ["stop"], "rm -rf /"])
+        elif kind == "counters":
+            v = self.pick([[1], "x", {"a b": 1}, {"ok": "many"}, {"ok": NAN}, {"ok": None}, {"ok": [1]}])
+        elif kind == "camera":
+            v = self._bad_camera(d["camera"])
+        else:  # map
+            v = self.pick([[1], "x", 5, None, _deep(P.MAX_NESTING + 1), {"s": "x" * (P.MAX_STRING + 1)},
+                           {"f": NAN}, {"f": INF}, {"b": b"raw"}])
+        d[name] = v
+        return f"bad_{kind}", _pack(d)
+
+    def _bad_camera(self, cam: dict):
+        cam = dict(cam)
+        how = int(self.rng.integers(12))
+        if how == 0:
+            del cam[self.pick(["fx", "fy", "cx", "cy", "width", "height"])]
+        elif how == 1:
+            cam[self.pick(["fx", "fy"])] = self.pick([0.0, -5.0, -1e-9])
+        elif how == 2:
+            cam[self.pick(["width", "height"])] += int(self.rng.integers(1, 5))
+        elif how == 3:
+            cam["dist"] = self.pick([[0.1], [0.1, 0.2, 0.3], [0.0] * 6, "none", [NAN, 0, 0, 0], 5])
+        elif how == 4:
+            cam["skew"] = 0.0
+        elif how == 5:
+            cam[self.pick(["fx", "fy", "cx", "cy"])] = self.pick([NAN, INF, -INF, "100", None, [1.0]])
+        elif how == 6:
+            cam["width"] = float(cam["width"])
+        elif how == 7:
+            cam[self.pick(["width", "height"])] = self.pick([0, -1, P.MAX_IMAGE_SIDE + 1, True])
+        elif how == 8:
+            return self.pick([[1, 2], "pinhole", 5, None])
+        elif how == 9:
+            return {}
+        elif how == 10:
+            cam["dist"] = {"k1": 0.1}
+        else:
+            cam = {"fx": cam["fx"]}
+        return cam
+
+    def _array_field(self, ch, float_only: bool = False):
+        schema = self.schema(ch)
+        names = [k for k, v in SCHEMA[schema].items() if v.rstrip("?") in ("array", "pose", "aabb")]
+        if float_only:
+            names = [n for n in names if n not in ("rgb", "colors")]
+        name = self.pick(names)
+        base = getattr(self.bases[ch], name)
+        if base is None:
+            base = DEFAULT_ARRAYS[(schema, name)](self.bases[ch])
+        return name, np.array(base)
+
+    def bad_array(self, ch):
+        """An array field spoiled: dtype, shape, data, size, container."""
+        d = self._copy(ch)
+        name, a = self._array_field(ch)
+        enc = _arr(a)
+        how = int(self.rng.integers(12))
+        if how == 0:
+            enc["dtype"] = self.pick(BAD_DTYPE)
+            cat = "bad_dtype"
+        elif how == 1:  # an allowed dtype, but not the one this field has (data consistent with it)
+            want = a.dtype.name
+            other = self.pick([t for t in P.ALLOWED_DTYPES if t != want and not (want.startswith("float") and
+                                                                                   t.startswith("float"))])
+            if name == "aabb":
+                other = self.pick(["uint8", "int32", "int64", "uint16"])
+            enc = _arr(a.astype(other))
+            cat = "wrong_dtype"
+        elif how == 2:  # shape does not match the number of data bytes
+            shape = list(a.shape)
+            i = int(self.rng.integers(len(shape)))
+            shape[i] += int(self.rng.integers(1, 4))
+            enc["shape"] = shape
+            cat = "shape_data_mismatch"
+        elif how == 3:  # consistent data, wrong number of dimensions / wrong fixed dimension
+            b = a.reshape(-1) if a.ndim > 1 else a.reshape(1, -1, 1)
+            if name in ("rgb",) and self.rng.random() < 0.5:
+                b = np.concatenate([a, a[..., :1]], -1)  # RGBA
+            enc = _arr(b)
+            cat = "wrong_shape"
+        elif how == 4:
+            enc["shape"] = [int(x) for x in self.rng.integers(-5, 0, size=max(1, a.ndim))]
+            cat = "negative_dim"
+        elif how == 5:
+            enc["shape"] = [1] * int(self.rng.integers(P.MAX_ARRAY_NDIM + 1, 12))
+            cat = "too_many_dims"
+        elif how == 6:  # the size claim alone exceeds the limits (data would be gigabytes)
+            enc["shape"] = self.pick([[100_000, 100_000, 3], [2 ** 31] * 6, [0] + [2 ** 31] * 5, [2 ** 31, 2 ** 31],
+                                      [P.MAX_POINTS + 1, 3], [P.MAX_IMAGE_SIDE + 1, P.MAX_IMAGE_SIDE + 1, 3]])
+            cat = "oversized"
+        elif how == 7:
+            enc["shape"] = self.pick(["4x4", 16, None, {"0": 4}, [4.0, 4.0], [True, 4]])
+            cat = "bad_shape_type"
+        elif how == 8:
+            enc["data"] = self.pick([a.tobytes().hex(), list(a.reshape(-1)[:8].tolist()), 5, None])
+            cat = "data_not_bytes"
+        elif how == 9:
+            if self.rng.random() < 0.5:
+                del enc[self.pick(["dtype", "shape", "data"])]
+            else:
+                enc[self.pick(["strides", "order", "byteorder"])] = self.pick([[1], "C", "<"])
+            cat = "array_keys"
+        elif how == 10:
+            enc = self.pick([[1, 2, 3], "array", 5, a.tobytes()[:64]])
+            cat = "array_not_map"
+        else:  # a real array just over a size limit (cheap: one long row)
+            if name == "rgb":
+                b = np.zeros((1, P.MAX_IMAGE_SIDE + 1, 3), np.uint8)
+            elif name == "depth":
+                b = np.zeros((1, P.MAX_IMAGE_SIDE + 1), np.float32)  # also mismatches the rgb size
+            else:
+                b = np.zeros((a.shape[0] + 1,) + a.shape[1:], a.dtype) if a.ndim else np.zeros(2, a.dtype)
+                if name in ("c2w", "frame_c2w", "covariance", "aabb"):
+                    b = np.zeros((4, 4) if name != "covariance" else (7, 7)) if name != "aabb" else np.zeros((3, 3))
+                elif name in ("points", "colors"):
+                    b = np.zeros((len(a) + 1, 3), a.dtype)  # points / colours counts differ
+            enc = _arr(b)
+            cat = "over_limit"
+        d[name] = enc
+        return cat, _pack(d)
+
+    def nonfinite(self, ch):
+        """NaN / Inf (or a negative depth / a non-rigid pose) in a float field."""
+        d = self._copy(ch)
+        name, a = self._array_field(ch, float_only=True)
+        a = np.array(a, dtype=a.dtype)
+        flat = a.reshape(-1)
+        if name in ("c2w", "frame_c2w") and self.rng.random() < 0.5:
+            m = np.array(a)
+            how = int(self.rng.integers(5))
+            if how == 0:
+                m[:3, :3] *= self.pick([2.0, 0.5, 1.01])  # scaled
+            elif how == 1:
+                m[0, 1] += 0.3  # sheared
+            elif how == 2:
+                m[:3, 0] *= -1  # a reflection (det -1)
+            elif how == 3:
+                m[3] = self.pick([[0, 0, 0, 2.0], [1.0, 0, 0, 1], [0, 0, 0, 0]])
+            else:
+                m[:3, :3] = 0
+            d[name] = _arr(m)
+            return "non_rigid_pose", _pack(d)
+        if name == "depth" and self.rng.random() < 0.3:
+            flat[int(self.rng.integers(flat.size))] = -self.rng.uniform(1e-6, 10)
+            d[name] = _arr(a)
+            return "negative_depth", _pack(d)
+        if name == "aabb" and self.rng.random() < 0.3:
+            d[name] = _arr(a[::-1].copy())  # min above max
+            return "inverted_aabb", _pack(d)
+        k = int(self.rng.integers(1, 4))
+        flat[self.rng.integers(flat.size, size=k)] = self.pick([NAN, INF, -INF])
+        d[name] = _arr(a)
+        return "nonfinite", _pack(d)
+
+    def field_arrays(self, ch):
+        """FieldSnapshot.arrays spoiled at the protocol level (decode must refuse)."""
+        d = self._copy(ch)
+        arrays = d["arrays"]
+        how = int(self.rng.integers(5))
+        if how == 0:
+            k = self.pick(sorted(arrays))
+            a = np.frombuffer(arrays[k]["data"], arrays[k]["dtype"]).reshape(arrays[k]["shape"]).copy()
+            a.reshape(-1)[0] = self.pick([NAN, INF])
+            arrays[k] = _arr(a)
+        elif how == 1:
+            arrays[self.pick(["../x", "a b", "", "x" * 200, "k/../../etc"])] = _arr(np.ones(2, np.float32))
+        elif how == 2:
+            d["arrays"] = self.pick([[1], "x", None, 5])
+        elif how == 3:
+            for i in range(P.MAX_FIELD_ARRAYS + 1):
+                arrays[f"x{i}"] = _arr(np.ones(1, np.float32))
+        else:
+            arrays[self.pick(sorted(arrays))]["dtype"] = self.pick(BAD_DTYPE)
+        return "bad_field_arrays", _pack(d)
+
+    # -- driver
+    def next(self, channel: str) -> tuple[str, bytes]:
+        gens = list(self.generic)
+        if not any(v.rstrip("?") in ("array", "pose", "aabb") for v in SCHEMA[self.schema(channel)].values()):
+            gens = [g for g in gens if g not in (self.bad_array, self.nonfinite)]
+        if self.schema(channel) == "FieldSnapshot":
+            gens += [self.field_arrays] * 2
+        sem = self.semantic.get(channel, [])
+        if sem and self.rng.random() < 0.2:
+            return self.pick(sem)(self.rng)
+        return self.pick(gens)(channel)
+
+    def stream(self, n: int, channels: list) -> list[tuple[str, str, bytes]]:
+        """``n`` (channel, category, payload) triples over ``channels`` in a seeded random order."""
+        out = []
+        for _ in range(n):
+            ch = self.pick(channels)
+            cat, data = self.next(ch)
+            out.append((ch, cat, data))
+        return out
+
+
+SEMANTIC = ("other_size", "other_intrinsics", "distorted_camera", "snapshot_")
+
+
+def decode_level(category: str) -> bool:
+    """Whether protocol.decode itself refuses payloads of this category (else the service does)."""
+    return not category.startswith(SEMANTIC)
+
+
+def frame_semantics(base: P.Frame) -> list[Callable]:
+    """Frames that decode but do not belong to the stream the service is in (size / intrinsics)."""
+
+    def other_size(rng):
+        h, w = base.rgb.shape[:2]
+        while True:
+            h2, w2 = int(rng.integers(1, 2 * h)), int(rng.integers(1, 2 * w))
+            if (h2, w2) != (h, w):
+                break
+        cam = dict(base.camera, width=w2, height=h2, cx=(w2 - 1) / 2, cy=(h2 - 1) / 2)
+        cam.pop("dist", None)
+        f = P.Frame(seq=base.seq + 1 + int(rng.integers(1000)), timestamp=base.timestamp + 1.0,
+                    rgb=rng.integers(0, 256, (h2, w2, 3), dtype=np.uint8), camera=cam,
+                    depth=np.ones((h2, w2), np.float32) if rng.random() < 0.5 else None)
+        return "other_size", P.encode(f)
+
+    def other_intrinsics(rng):
+        cam = dict(base.camera)
+        cam.pop("dist", None)
+        k = str(rng.choice(["fx", "fy", "cx", "cy"]))
+        cam[k] = float(cam[k]) * float(rng.choice([0.5, 0.9, 1.001, 2.0]))
+        f = dataclasses.replace(base, seq=base.seq + 1 + int(rng.integers(1000)), camera=cam)
+        return "other_intrinsics", P.encode(f)
+
+    def distorted(rng):
+        cam = dict(base.camera)
+        cam["dist"] = [float(x) for x in rng.uniform(-0.2, 0.2, int(rng.choice([4, 5, 8])))]
+        f = dataclasses.replace(base, seq=base.seq + 1 + int(rng.integers(1000)), camera=cam)
+        return "distorted_camera", P.encode(f)
+
+    return [other_size, other_intrinsics, distorted]
+
+
+def snapshot_semantics(base: P.FieldSnapshot, next_version: Callable[[], int]) -> list[Callable]:
+    """Field snapshots that decode but cannot be (or must not be) used: arrays that do not fit the
+    config, configs asking for huge fields, unusable render settings, another camera. Each has a
+    version above the tracker's (an older one would only be counted as stale)."""
+
+    def spoil(rng, cat, fn):
+        s = dataclasses.replace(base, version=next_version(), config=json.loads(json.dumps(base.config)),
+                                arrays={k: np.array(v) for k, v in base.arrays.items()})
+        fn(s, rng)
+        return f"snapshot_{cat}", P.encode(s)
+
+    def arrays(rng):
+        def f(s, rng):
+            k = str(rng.choice(sorted(k for k in s.arrays if k != "aabb")))
+            how = int(rng.integers(4))
+            if how == 0:
+                del s.arrays[k]
+            elif how == 1:
+                s.arrays[k + "_x"] = s.arrays.pop(k)
+            elif how == 2:
+                a = s.arrays[k]
+                s.arrays[k] = np.concatenate([a.reshape(-1), a.reshape(-1)[:1]]).astype(a.dtype)
+            else:
+                s.arrays["extra"] = np.ones(3, np.float32)
+        return spoil(rng, "arrays", f)
+
+    def oversized(rng):
+        def f(s, rng):
+            s.config["field"].update(rng.choice([
+                {"resolution": 10 ** 7}, {"density_components": 10 ** 6, "resolution": 4096},
+                {"kind": "grid", "grid_resolution": 10 ** 5}, {"kind": "vm", "resolution": 10 ** 5},
+                {"kind": "mlp", "mlp_width": 10 ** 6, "mlp_layers": 8}, {"hidden": 10 ** 8, "app_features": 10 ** 8},
+                {"kind": "mlp", "pe_freqs": 10 ** 9}]))
+        return spoil(rng, "oversized_config", f)
+
+    def bad_config(rng):
+        def f(s, rng):
+            how = int(rng.integers(7))
+            if how == 0:
+                s.config["field"]["unknown_knob"] = 1
+            elif how == 1:
+                s.config["field"]["kind"] = str(rng.choice(["evil", "", "CP"]))
+            elif how == 2:
+                s.config["field"]["resolution"] = [None, "12", 1.5, -3, 0][int(rng.integers(5))]
+            elif how == 3:
+                s.config["field"] = [None, "cp", 5, [1]][int(rng.integers(4))]
+            elif how == 4:
+                s.config["field"]["seed"] = ["0", None, [1]][int(rng.integers(3))]
+            elif how == 5:
+                s.config["field"]["init_scale"] = [0.0, -1.0, "x"][int(rng.integers(3))]
+            else:
+                s.config["field"]["alpha_mode"] = "maybe"
+        return spoil(rng, "bad_config", f)
+
+    def render(rng):
+        def f(s, rng):
+            k, v = [("n_coarse", 10 ** 9), ("n_coarse", 0), ("n_coarse", 1.5), ("n_coarse", "32"), ("n_fine", -1),
+                    ("n_fine", 10 ** 6), ("near", -1.0), ("near", "0.1"), ("far", 0.0), ("far", 1e9), ("near", 100.0),
+                    ("near", None), ("n_coarse", True)][int(rng.integers(13))]
+            s.config[k] = v
+        return spoil(rng, "render_config", f)
+
+    def camera(rng):
+        def f(s, rng):
+            cam = dict(s.config["camera"])
+            how = int(rng.integers(5))
+            if how == 0:
+                cam["fx"] = cam["fx"] * 1.5  # valid on its own, but not the frames' camera
+            elif how == 1:
+                cam["width"] = cam["width"] * 2
+            elif how == 2:
+                cam["width"] = 10 ** 9
+            elif how == 3:
+                del cam["fy"]
+            else:
+                cam = [1, 2]
+            s.config["camera"] = cam
+        return spoil(rng, "camera", f)
+
+    return [arrays, oversized, bad_config, render, camera]
+
+
+# ============================================================================ state of the cores
+def mapper_state(core) -> dict:
+    """Everything a bad input must not touch, as plain comparable values (tensors by their bytes)."""
+    m = core.mapper
+    return {
+        "field": {k: (v.dtype, tuple(v.shape), v.detach().cpu().numpy().tobytes()) for k, v in
+                  m.field.state_dict().items()},
+        "poses": {k: v.tobytes() for k, v in m.frame_poses().items()},
+        "frames_mapped": len(m.frame_poses()), "keyframes": list(m.keyframe_ids()),
+        "seq_of_fid": list(core.seq_of_fid), "ack": core.ack, "version": core.version, "windows": core.windows,
+        "pending_frames": list(core.frames), "pending_poses": {k: v.c2w.tobytes() for k, v in core.poses.items()},
+        "anchors": sorted(core.anchors), "camera": dict(core.camera_dict), "paused": core.paused,
+        "latest": hashlib.sha256(core.latest_field_bytes).hexdigest(), "finished": core.finished,
+    }
+
+
+def tracker_state(core) -> dict:
+    return {
+        "field": {k: v.detach().cpu().numpy().tobytes() for k, v in core.field.state_dict().items()},
+        "version": core.version, "map_seq": core.map_seq, "ack": core.ack, "ref_seq": core.ref_seq,
+        "waiting": list(core.waiting), "recent": list(core.recent), "camera": dict(core.camera_dict),
+        "mapper_poses": {k: v.tobytes() for k, v in core.mapper_poses.items()},
+        "own_poses": {k: v.tobytes() for k, v in core.own_poses.items()},
+        "snapshot_pose": None if core.snapshot_pose is None else (core.snapshot_pose[0], core.snapshot_pose[1].tobytes()),
+        "render_cfg": dict(core.render_cfg),
+        "reference": None if core.tracker.reference is None else core.tracker.reference.frame_index,
+    }
+
+
+def _run_fuzz(handle, stream) -> tuple[collections.Counter, float]:
+    """Feed every payload; an exception escaping ``handle`` fails the test with the payload's category."""
+    cats: collections.Counter = collections.Counter()
+    t0 = time.perf_counter()
+    for ch, cat, data in stream:
+        try:
+            out = handle(ch, data)
+        except Exception as e:  # noqa: BLE001 - the point of the test
+            raise AssertionError(f"{type(e).__name__} escaped on a {cat!r} payload on {ch!r}: {e}") from e
+        assert not out, (cat, out)
+        cats[cat] += 1
+    return cats, time.perf_counter() - t0
+
+
+def _report(name: str, cats: collections.Counter, seconds: float) -> None:
+    n = sum(cats.values())
+    print(f"\n[fuzz] {name}: {n} payloads in {seconds:.2f} s ({n / seconds:.0f}/s), {len(cats)} categories: "
+          + ", ".join(f"{k} {v}" for k, v in sorted(cats.items())))
+
+
+# ============================================================================ 1. fuzz: service cores
+@pytest.fixture(scope="module")
+def mapped(dataset):
+    """A MapperCore with a map (init + one window over frames 0..5) and frame 6 waiting for its pose."""
+    from services.mapper import MapperCore, MapperServiceOptions
+
+    core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", points_interval=1e9, checkpoint_every=0))
+    _feed(core, dataset, range(6))
+    core.handle("frames", P.encode(P.frame_from_dataset(dataset[6], seq=6)))
+    assert core.mapper.initialized and core.ack == 5 and list(core.frames) == [6] and core.version == 2
+    return core
+
+
+def test_fuzz_mapper_core_10k_malformed_messages(mapped, dataset):
+    core = mapped
+    base_frame = P.decode(P.encode(P.frame_from_dataset(dataset[7], seq=7)))
+    bases = {"frames": base_frame, "poses": P.Pose(seq=7, timestamp=dataset.timestamps[7], c2w=dataset[7].c2w,
+                                                   source="gt", covariance=np.eye(6) * 1e-4, quality=0.9),
+             "control": P.Control("pause", {"reason": "test", "n": [1, 2.5]})}
+    fz = Fuzzer(1234, bases, semantic={"frames": frame_semantics(base_frame)})
+    stream = fz.stream(N_FUZZ, ["frames", "poses", "control"])
+    before, c0 = mapper_state(core), core.counters.snapshot()
+    cats, secs = _run_fuzz(lambda ch, data: core.handle(ch, data, key=f"fuzz/{ch}"), stream)
+    c1 = core.counters.snapshot()
+    assert mapper_state(core) == before  # compared exactly: field bytes, poses, queues, versions
+    delta = {k: c1.get(k, 0) - c0.get(k, 0) for k in set(c1) | set(c0) if c1.get(k, 0) != c0.get(k, 0)}
+    n_decode = sum(v for k, v in cats.items() if decode_level(k))
+    assert delta.get("bad_input") == N_FUZZ, delta
+    assert delta.get("decode_errors") == n_decode and delta.get("rejected_frames") == N_FUZZ - n_decode, delta
+    assert set(delta) == {"bad_input", "decode_errors", "rejected_frames"}, delta  # nothing else moved
+    assert len(cats) >= 25, cats
+    _report("MapperCore.handle", cats, secs)
+    # and it still works: the waiting frame 6 gets its pose, 7 completes a window
+    outs = _feed(core, dataset, [6, 7])
+    assert core.ack == 7 and any(ch == "field" for ch, _ in outs)
+
+
+def test_fuzz_tracker_core_10k_malformed_messages(mapped, dataset):
+    from services.tracker import TrackerCore, TrackerServiceOptions
+
+    snap = P.decode(mapped.latest_field_bytes, P.FieldSnapshot)
+    core = TrackerCore(opts=TrackerServiceOptions(use_depth=True))  # references from the sensor depth
+    core.handle("frames", P.encode(P.frame_from_dataset(dataset[snap.frame_seq], seq=snap.frame_seq)))
+    core.handle("field", mapped.latest_field_bytes)
+    for p in mapped.window_poses():
+        core.handle("poses", P.encode(p))
+    first = snap.frame_seq + 1
+    for i in range(first, first + 3):
+        core.handle("frames", P.encode(P.frame_from_dataset(dataset[i], seq=i)))
+    assert core.ack == first + 2 and core.field is not None and core.tracker.reference is not None
+    versions = iter(range(snap.version + 1, 10 ** 9))
+    base_frame = P.decode(P.encode(P.frame_from_dataset(dataset[first + 3], seq=first + 3)))
+    bases = {"frames": base_frame, "field": dataclasses.replace(snap, version=snap.version + 1),
+             "poses": P.Pose(seq=first + 3, timestamp=0.5, c2w=dataset[first + 3].c2w, source="mapper"),
+             "control": P.Control("reset", {"target": "tracker"})}
+    fz = Fuzzer(4321, bases, semantic={"frames": frame_semantics(base_frame),
+                                       "field": snapshot_semantics(snap, lambda: next(versions))})
+    stream = fz.stream(N_FUZZ, ["frames", "field", "poses", "control"])
+    before, c0 = tracker_state(core), core.counters.snapshot()
+    cats, secs = _run_fuzz(lambda ch, data: core.handle(ch, data, key=f"fuzz/{ch}"), stream)
+    c1 = core.counters.snapshot()
+    assert tracker_state(core) == before
+    delta = {k: c1.get(k, 0) - c0.get(k, 0) for k in set(c1) | set(c0) if c1.get(k, 0) != c0.get(k, 0)}
+    n_decode = sum(v for k, v in cats.items() if decode_level(k))
+    n_snap = sum(v for k, v in cats.items() if k.startswith("snapshot_"))
+    assert delta.get("bad_input") == N_FUZZ, delta
+    assert delta.get("decode_errors") == n_decode and delta.get("rejected_snapshots") == n_snap, delta
+    assert delta.get("rejected_frames") == N_FUZZ - n_decode - n_snap, delta
+    assert set(delta) == {"bad_input", "decode_errors", "rejected_frames", "rejected_snapshots"}, delta
+    _report("TrackerCore.handle", cats, secs)
+    # still tracking
+    outs = core.handle("frames", P.encode(P.frame_from_dataset(dataset[first + 3], seq=first + 3)))
+    assert [m.seq for _, m in outs] == [first + 3] and core.ack == first + 3
+
+
+class _NoSession:
+    """Stands in for a zenoh session where only decoding is exercised (no subscriber is ever called)."""
+
+    class _Decl:
+        def undeclare(self):
+            pass
+
+        def put(self, data):
+            pass
+
+    def declare_subscriber(self, key, cb):
+        return self._Decl()
+
+    def declare_publisher(self, key, **kw):
+        return self._Decl()
+
+    def declare_queryable(self, key, cb):
+        return self._Decl()
+
+
+def _io_service(name: str, parser_args: list, add_args) -> tuple:
+    import argparse
+
+    args = add_args(argparse.ArgumentParser()).parse_args(parser_args)
+    return C.Service(name, args, session=_NoSession(), keys=P.Keys("fuzz"), install_signals=False), args
+
+
+def test_fuzz_io_handlers_10k_malformed_messages_each(mapped, dataset, tmp_path):
+    """io record, io view and io play decode what they hear in their handlers: 10,000 bad
+    payloads each are all counted (decode_errors = bad_input = sent) and change nothing."""
+    import rerun as rr
+
+    from services.io import play, record, view
+
+    frame = P.decode(P.encode(P.frame_from_dataset(dataset[3], seq=3)))
+    snap = P.decode(mapped.latest_field_bytes, P.FieldSnapshot)
+    bases = {"frames": frame, "poses": P.Pose(seq=3, timestamp=0.1, c2w=dataset[3].c2w, source="tracker",
+                                              quality=0.5),
+             "points": P.PointsSnapshot(version=2, points=np.random.default_rng(0).normal(size=(40, 3)).astype(np.float32),
+                                        colors=np.full((40, 3), 9, np.uint8), frame_seq=3),
+             "field": snap,
+             "status": P.Status(service="mapper", seq=4, time=1.0e9, state="running", frame_seq=3, lag=0.1,
+                                counters={"frames_processed": 4, "last_window_s": 0.25}, last_error="none"),
+             "control": P.Control("save", {"target": "all"})}
+
+    # io record: a Recorder with some poses and points already
+    svc, _ = _io_service("record", ["--out", str(tmp_path / "rec")], record.add_args)
+    rec, peers = record.Recorder(tmp_path / "rec"), C.Peers()
+    for i in range(3):
+        record.handle_message(svc, rec, peers, "poses", "k", P.encode(P.Pose(seq=i, timestamp=float(i), c2w=np.eye(4),
+                                                                           source="tracker")))
+    record.handle_message(svc, rec, peers, "points", "k", P.encode(bases["points"]))
+
+    def rec_state():
+        return ({s: {k: (t, c.tobytes()) for k, (t, c) in d.items()} for s, d in rec.poses.items()},
+                rec.points.version, rec.points.points.tobytes(), peers.services())
+
+    chans = ["poses", "points", "status", "control"]
+    fz = Fuzzer(11, {k: bases[k] for k in chans})
+    before, c0 = rec_state(), svc.counters.snapshot()
+    cats, secs = _run_fuzz(lambda ch, d: record.handle_message(svc, rec, peers, ch, "fuzz", d, ["mapper"]),
+                           fz.stream(N_FUZZ, chans))
+    c1 = svc.counters.snapshot()
+    assert rec_state() == before and not (tmp_path / "rec" / "record.json").exists()
+    assert c1["bad_input"] - c0.get("bad_input", 0) == N_FUZZ == c1["decode_errors"] - c0.get("decode_errors", 0)
+    _report("io record handle_message", cats, secs)
+
+    # io view: a Viewer on a recording stream without a sink
+    svc, _ = _io_service("view", ["--save", str(tmp_path / "x.rrd")], view.add_args)
+    stream_rr = rr.RecordingStream("fuzz")
+    viewer, peers = view.Viewer(stream_rr), C.Peers()
+    for ch in ("frames", "poses", "points", "field", "status"):
+        view.handle_message(svc, viewer, peers, ch, "k", P.encode(bases[ch]))
+    assert svc.counters.get("log_errors") == 0 and viewer.frames == 1
+
+    def view_state():
+        return ({s: [p.tobytes() for p in v] for s, v in viewer.traj.items()}, viewer.frames, viewer._camera,
+                peers.services(), svc.counters.get("log_errors"), sorted(k for k in svc.counters.snapshot()
+                                                                         if k.startswith("logged_")),
+                {k: svc.counters.get(k) for k in svc.counters.snapshot() if k.startswith("logged_")})
+
+    chans = ["frames", "poses", "points", "field", "status", "control"]
+    fz = Fuzzer(12, {k: bases[k] for k in chans})
+    before, c0 = view_state(), svc.counters.snapshot()
+    cats, secs = _run_fuzz(lambda ch, d: view.handle_message(svc, viewer, peers, ch, "fuzz", d, ["mapper"]),
+                           fz.stream(N_FUZZ, chans))
+    c1 = svc.counters.snapshot()
+    assert view_state() == before
+    assert c1["bad_input"] - c0.get("bad_input", 0) == N_FUZZ == c1["decode_errors"] - c0.get("decode_errors", 0)
+    _report("io view handle_message", cats, secs)
+
+    # io play: its status and control callbacks (flow control, pause / stop / reset)
+    svc, args = _io_service("play", ["--data", "unused"], play.add_args)
+    player = play.Player(svc, dataset, args)
+    player._on_status("k", P.encode(bases["status"]))
+
+    def play_state():
+        return (player.peers.services(), player.peers.acked("mapper"), dict(player.floor), player.paused.is_set(),
+                player.stop_requested.is_set(), player.reset_requested.is_set())
+
+    fz = Fuzzer(13, {k: bases[k] for k in ("status", "control")})
+    before, c0 = play_state(), svc.counters.snapshot()
+    handlers = {"status": player._on_status, "control": player._on_control}
+    cats, secs = _run_fuzz(lambda ch, d: handlers[ch]("fuzz", d), fz.stream(N_FUZZ, ["status", "control"]))
+    c1 = svc.counters.snapshot()
+    assert play_state() == before
+    assert c1["bad_input"] - c0.get("bad_input", 0) == N_FUZZ == c1["decode_errors"] - c0.get("decode_errors", 0)
+    _report("io play status/control callbacks", cats, secs)
+
+
+# ============================================================================ 1b. fuzz through zenoh
+def _conf(listen=None, connect=None):
+    return C.zenoh_config("peer", listen=listen or [], connect=connect or [], multicast=False)
+
+
+@pytest.fixture
+def zpair():
+    """Two zenoh peers in this process over a free loopback port (no router)."""
+    ep = f"tcp/127.0.0.1:{C.free_port()}"
+    a = zenoh.open(_conf(listen=[ep]))
+    b = zenoh.open(_conf(connect=[ep]))
+    yield a, b, ep
+    b.close()
+    a.close()
+
+
+class StatusWatch:
+    """The newest Status of one service heard on the bus, with a deadline-bounded wait."""
+
+    def __init__(self, session, key):
+        self.cond = threading.Condition()
+        self.latest: Optional[P.Status] = None
+        self.sub = session.declare_subscriber(key, self._on)
+
+    def _on(self, sample):
+        st = P.decode(C.payload_bytes(sample), P.Status)
+        with self.cond:
+            if self.latest is None or st.seq > self.latest.seq:
+                self.latest = st
+            self.cond.notify_all()
+
+    def wait(self, pred, timeout=TIMEOUT, what="status") -> P.Status:
+        end = time.monotonic() + timeout
+        with self.cond:
+            while self.latest is None or not pred(self.latest):
+                left = end - time.monotonic()
+                assert left > 0, f"timed out waiting for {what}; last status: {self.latest}"
+                self.cond.wait(min(left, 0.2))
+            return self.latest
+
+
+def _start_thread(target, *args, **kw):
+    errors: list = []
+
+    def run():
+        try:
+            target(*args, **kw)
+        except BaseException as e:  # noqa: BLE001 - surfaced by the test
+            errors.append(e)
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    return t, errors
+
+
+def test_fuzz_500_malformed_messages_through_zenoh_to_a_running_mapper(dataset, tmp_path, zpair):
+    """The zenoh shell of the mapper (a real service, in-process peer) survives 500 bad payloads on
+    frames / poses / control, counts every one in its published Status, and its map is untouched
+    (the map/latest answer is byte-identical before and after); then it maps on."""
+    import yaml
+
+    from services.mapper.__main__ import main as mapper_main
+
+    a, b, _ = zpair
+    keys = P.Keys("fz")
+    cfg = tmp_path / "m.yaml"
+    cfg.write_text(yaml.safe_dump(SMALL_MAPPER))
+    watch = StatusWatch(b, keys.status("mapper"))
+    thread, errors = _start_thread(mapper_main, ["--poses", "gt", "--config", str(cfg), "--points-interval", "1000",
+                                                 "--checkpoint-every", "0", "--status-interval", "0.1"],
+                                   session=a, keys=keys)
+    watch.wait(lambda s: s.state == "running", what="mapper up")
+    pubs = {ch: b.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
+            for ch, k in (("frames", keys.frames), ("poses", keys.poses("gt")), ("control", keys.control))}
+    end = time.monotonic() + TIMEOUT
+    while not all(p.matching_status.matching for p in pubs.values()):
+        assert time.monotonic() < end, "mapper subscriptions never matched"
+        time.sleep(0.01)
+
+    def send_valid(ids):
+        for i in ids:
+            f = dataset[i]
+            pubs["poses"].put(P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
+            pubs["frames"].put(P.encode(P.frame_from_dataset(f, seq=i)))
+
+    send_valid(range(6))  # init (4 frames) + one window
+    st = watch.wait(lambda s: s.frame_seq == 5 and s.counters.get("windows") == 2, what="first map")
+    latest = C.query_latest(b, keys.latest, timeout=TIMEOUT)
+    assert latest is not None and P.decode(latest, P.FieldSnapshot).version == 2
+    c0 = st.counters
+
+    base_frame = P.decode(P.encode(P.frame_from_dataset(dataset[6], seq=6)))
+    fz = Fuzzer(99, {"frames": base_frame, "poses": P.Pose(seq=6, timestamp=0.2, c2w=dataset[6].c2w, source="gt"),
+                     "control": P.Control("pause")}, semantic={"frames": frame_semantics(base_frame)})
+    stream = fz.stream(500, ["frames", "poses", "control"])
+    sent = collections.Counter()
+    t0 = time.perf_counter()
+    for k in range(0, len(stream), 25):  # bursts within the inbox capacity (32 frames): nothing is dropped
+        for ch, _, data in stream[k:k + 25]:
+            pubs[ch].put(data)
+            sent[ch] += 1
+        n = k + len(stream[k:k + 25])
+        watch.wait(lambda s: s.counters.get("bad_input", 0) - c0.get("bad_input", 0) >= n, what=f"{n} counted")
+    secs = time.perf_counter() - t0
+    st = watch.wait(lambda s: s.counters.get("bad_input", 0) - c0.get("bad_input", 0) >= 500)
+    c1 = st.counters
+    delta = {k: c1.get(k, 0) - c0.get(k, 0) for k in ("bad_input", "decode_errors", "rejected_frames",
+                                                       "received_frames", "received_poses", "received_control",
+                                                       "dropped_frames", "dropped_poses", "errors", "windows",
+                                                       "frames_processed")}
+    cats = collections.Counter(c for _, c, _ in stream)
+    n_decode = sum(v for k, v in cats.items() if decode_level(k))
+    assert delta["bad_input"] == 500 and delta["decode_errors"] == n_decode, delta
+    assert delta["rejected_frames"] == 500 - n_decode, delta
+    assert (delta["received_frames"], delta["received_poses"], delta["received_control"]) == \
+        (sent["frames"], sent["poses"], sent["control"]), (delta, sent)
+    assert delta["dropped_frames"] == delta["errors"] == delta["windows"] == delta["frames_processed"] == 0, delta
+    assert st.frame_seq == 5 and thread.is_alive()
+    assert C.query_latest(b, keys.latest, timeout=TIMEOUT) == latest  # the map did not change by a bit
+    print(f"\n[fuzz/zenoh] 500 payloads ({dict(sent)}) in {secs:.2f} s; status counted bad_input "
+          f"{delta['bad_input']} (decode_errors {delta['decode_errors']}, rejected_frames "
+          f"{delta['rejected_frames']}), dropped 0, errors 0")
+    # it maps on: frames 6, 7 complete the next window
+    send_valid([6, 7])
+    watch.wait(lambda s: s.frame_seq == 7 and s.counters.get("windows") == 3, what="next window")
+    pubs["control"].put(P.encode(P.Control("stop", {"reason": "end", "last_seq": 7})))
+    thread.join(timeout=TIMEOUT)
+    assert not thread.is_alive() and not errors
+    watch.sub.undeclare()
+
+
+# ============================================================================ subprocess helpers
+def _env():
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+class Svc:
+    """A service as a real OS process, with its status file and log (for the reliability tests)."""
+
+    def __init__(self, name: str, argv: list, workdir: Path, ep: str, connect: Optional[list] = None,
+                 ns: str = "rel", interval: float = 0.2):
+        self.name, self.ep = name, ep
+        self.status_file = workdir / f"{name}.status.json"
+        self.log_path = workdir / f"{name}.log"
+        if self.status_file.exists():
+            self.status_file.unlink()
+        net = ["--listen", ep, "--ns", ns, "--status-file", str(self.status_file), "--status-interval", str(interval)]
+        if connect:
+            net += ["--connect", ",".join(connect)]
+        self._log = open(self.log_path, "ab")
+        self.argv = [sys.executable, "-m"] + argv + net
+        self.popen = subprocess.Popen(self.argv, cwd=ROOT, env=_env(), stdout=self._log, stderr=subprocess.STDOUT)
+        self.pid = self.popen.pid
+
+    def status(self) -> dict:
+        try:
+            return json.loads(self.status_file.read_text())
+        except (OSError, ValueError):
+            return {}
+
+    def counters(self) -> dict:
+        return self.status().get("counters", {})
+
+    def log(self) -> str:
+        try:
+            return self.log_path.read_text(errors="replace")
+        except OSError:
+            return ""
+
+    def wait_for(self, pred: Callable[[dict], bool], timeout: float = TIMEOUT, what: str = "") -> dict:
+        """Poll the status file until ``pred(status)`` holds (fails on exit or after ``timeout``)."""
+        end = time.monotonic() + timeout
+        while True:
+            st = self.status()
+            if st and pred(st):
+                return st
+            assert self.popen.poll() is None, f"{self.name} exited ({self.popen.returncode}) waiting for {what}:\n" \
+                                              + self.log()[-3000:]
+            assert time.monotonic() < end, f"{self.name}: timed out waiting for {what}; status {st}\n" + self.log()[-3000:]
+            time.sleep(0.05)
+
+    def stop(self, sig=signal.SIGTERM, timeout: float = 30.0) -> tuple[int, float]:
+        """Send ``sig``; returns (exit code, seconds until the process was gone)."""
+        t0 = time.monotonic()
+        if self.popen.poll() is None:
+            self.popen.send_signal(sig)
+        try:
+            rc = self.popen.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.popen.kill()
+            rc = self.popen.wait()
+        return rc, time.monotonic() - t0
+
+    def kill(self) -> None:
+        if self.popen.poll() is None:
+            self.popen.kill()
+            self.popen.wait()
+        self._log.close()
+
+
+def rss_kb(pid: int) -> int:
+    """Resident set size of ``pid`` in kB (VmRSS of /proc/<pid>/status)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise RuntimeError(f"no VmRSS for {pid}")
+
+
+def _ep() -> str:
+    return f"tcp/127.0.0.1:{C.free_port()}"
+
+
+# ============================================================================ 2. overload
+OVERLOAD_FPS = 50.0  # the mapper below does ~4-5 frames/s on one thread here: playback ~10x faster
+OVERLOAD_SECONDS = 20.0
+WARMUP_SECONDS = 6.0
+
+
+@pytest.mark.slow
+def test_overload_playback_10x_faster_than_the_mapper_drops_oldest_and_rss_stays_flat(tmp_path):
+    """``io play --fps 50 --loop`` (no flow control) into a mapper that maps ~5 frames/s:
+    the mapper's bounded inbox drops the oldest frames (counted), every frame received is
+    accounted for (dropped + consumed + still queued), and the mapper's RSS stays flat after
+    warm-up while the offered load would have grown it by hundreds of MB."""
+    import yaml
+
+    from fmapping.synthetic import generate_scene
+
+    scene = tmp_path / "scene"
+    generate_scene(scene, seed=3, frames=16, size=(160, 120), max_cloud_points=2000, mesh_spacing=0.2)
+    frame_bytes = 160 * 120 * 3 + 160 * 120 * 4  # rgb uint8 + depth float32 per Frame message
+    cfg = tmp_path / "m.yaml"
+    cfg.write_text(yaml.safe_dump(dict(SMALL_MAPPER, iters_per_window=20)))
+    ep_m, ep_p = _ep(), _ep()
+    mapper = Svc("mapper", ["services.mapper", "--poses", "gt", "--config", str(cfg), "--out", str(tmp_path / "out"),
+                            "--threads", "1", "--no-mesh", "--points-interval", "2"], tmp_path, ep_m, interval=0.25)
+    play = None
+    try:
+        mapper.wait_for(lambda s: s.get("state") == "running", 120, "mapper up")
+        play = Svc("play", ["services.io", "play", "--data", str(scene), "--fps", str(OVERLOAD_FPS), "--loop",
+                            "--ack-from=", "--wait-for", "mapper", "--no-end-stop"], tmp_path, ep_p, [ep_m],
+                   interval=0.25)
+        mapper.wait_for(lambda s: s["counters"].get("windows", 0) >= 1, 120, "first mapping update")
+        t0 = time.monotonic()
+        samples = []  # (t, rss kB, mapper counters, play counters)
+        tick = threading.Event()
+        while time.monotonic() - t0 < OVERLOAD_SECONDS:
+            assert mapper.popen.poll() is None and play.popen.poll() is None, mapper.log()[-2000:] + play.log()[-2000:]
+            samples.append((time.monotonic() - t0, rss_kb(mapper.pid), mapper.counters(), play.counters()))
+            tick.wait(1.0)  # the sampling period (not a synchronisation)
+        rc_play, _ = play.stop(signal.SIGINT)
+        end = play.counters()
+        rc_map, took = mapper.stop(signal.SIGTERM)
+        final = mapper.status()
+    finally:
+        for s in (play, mapper):
+            if s is not None:
+                s.kill()
+    assert rc_play == 0 and rc_map == 0, mapper.log()[-3000:]
+    c = final["counters"]
+    sent = int(end.get("frames_sent", 0))
+    received, dropped = int(c.get("received_frames", 0)), int(c.get("dropped_frames", 0))
+    consumed, processed = int(c.get("frames_received", 0)), int(c.get("frames_processed", 0))
+    queued = int(c.get("queued_frames", 0))
+    # every frame is accounted for: zenoh delivered them all, the inbox dropped or passed each
+    assert received == sent, (received, sent)
+    assert received == dropped + consumed + queued + int(c.get("rejected_frames", 0)) + \
+        int(c.get("stale_frames", 0)), c
+    assert consumed - processed - int(c.get("frames_without_pose", 0)) <= 1, c  # at most one frame waits for its pose
+    assert queued <= 32  # the inbox capacity
+    assert dropped > 0.5 * sent and sent >= 5 * processed, (sent, processed, dropped)
+    # memory: flat after warm-up
+    warm = [s for s in samples if s[0] >= WARMUP_SECONDS]
+    assert len(warm) >= 8, samples
+    base = warm[0][1]
+    growth_mb = (max(s[1] for s in warm) - base) / 1024
+    dropped_after = dropped - int(warm[0][2].get("dropped_frames", 0))
+    offered_mb = dropped_after * frame_bytes / 2 ** 20  # what an unbounded queue would have kept
+    # justified bound: the mapper keeps every keyframe's image + depth (keyframe_every = 2) and
+    # one checkpoint / snapshot in flight; 24 MB for allocator and zenoh buffer slack
+    processed_after = processed - int(warm[0][2].get("frames_processed", 0))
+    bound_mb = 24 + processed_after / 2 * frame_bytes / 2 ** 20 * 2
+    print(f"\n[overload] {OVERLOAD_SECONDS:.0f} s at {OVERLOAD_FPS:.0f} fps: play sent {sent}, mapper received {received}, "
+          f"dropped {dropped} (inbox drop-oldest), consumed {consumed}, mapped {processed} "
+          f"({processed / OVERLOAD_SECONDS:.1f} fps), still queued {queued}, windows {c.get('windows')}; "
+          f"stop took {took:.2f} s")
+    print("[overload] mapper RSS MB by second: " + ", ".join(f"{t:.0f}:{r / 1024:.0f}" for t, r, _, _ in samples))
+    print(f"[overload] growth after {WARMUP_SECONDS:.0f} s warm-up {growth_mb:.1f} MB (bound {bound_mb:.1f} MB); "
+          f"an unbounded queue would have held {offered_mb:.0f} MB more")
+    assert growth_mb < bound_mb and growth_mb < 0.25 * offered_mb, (growth_mb, bound_mb, offered_mb)
+
+
+# ============================================================================ 3. crash and restart
+class Producer:
+    """The test as the frame + GT pose source of a mapper process (paced by its acknowledgement)."""
+
+    def __init__(self, session, keys: P.Keys, dataset):
+        self.ds = dataset
+        self.pf = session.declare_publisher(keys.frames, congestion_control=zenoh.CongestionControl.BLOCK)
+        self.pp = session.declare_publisher(keys.poses("gt"), congestion_control=zenoh.CongestionControl.BLOCK)
+        self.pc = session.declare_publisher(keys.control, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def wait_matched(self, timeout=TIMEOUT):
+        end = time.monotonic() + timeout
+        while not (self.pf.matching_status.matching and self.pp.matching_status.matching):
+            assert time.monotonic() < end, "no subscriber matched"
+            time.sleep(0.01)
+
+    def send(self, i: int) -> None:
+        f = self.ds[i]
+        self.pp.put(P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
+        self.pf.put(P.encode(P.frame_from_dataset(f, seq=i)))
+
+    def stream(self, svc: "Svc", ids, in_flight: int = 2, stop_when: Optional[Callable[[dict], bool]] = None):
+        """Send ``ids`` keeping at most ``in_flight`` frames beyond the service's ack; returns early
+        (with the status) once ``stop_when(status)`` holds."""
+        for i in ids:
+            st = svc.wait_for(lambda s: s.get("frame_seq", -1) >= i - in_flight or (stop_when and stop_when(s)),
+                              TIMEOUT, f"ack of frame {i - in_flight}")
+            if stop_when and stop_when(st):
+                return st
+            self.send(i)
+        return svc.status()
+
+
+def test_checkpoint_write_is_atomic_when_the_process_dies_mid_write(dataset, tmp_path, monkeypatch):
+    """A crash while the next checkpoint is being written (here: torch.save raising half-way)
+    leaves the previous checkpoint intact and loadable; the temp file is never the checkpoint."""
+    from services.mapper import MapperCore, MapperServiceOptions
+
+    opts = dict(pose_source="gt", out=str(tmp_path), points_interval=1e9, checkpoint_every=1)
+    core = MapperCore(small_cfg(), MapperServiceOptions(**opts))
+    _feed(core, dataset, range(6))  # init + 1 window: 2 checkpoints
+    ck = tmp_path / "checkpoint.pt"
+    good = ck.read_bytes()
+    real_save = torch.save
+
+    def dying_save(obj, fh, *a, **kw):
+        real_save(obj, fh, *a, **kw)
+        fh.truncate(fh.tell() // 2)  # half the bytes are on disk when the process "dies"
+        raise KeyboardInterrupt("killed mid-write")
+
+    monkeypatch.setattr(torch, "save", dying_save)
+    with pytest.raises(KeyboardInterrupt):
+        _feed(core, dataset, range(6, 8))  # the next window's checkpoint dies half-way
+    monkeypatch.setattr(torch, "save", real_save)
+    assert ck.read_bytes() == good  # untouched: the half-written bytes went to the temp file only
+    leftovers = list(tmp_path.glob(".checkpoint.pt.*.tmp"))
+    assert len(leftovers) == 1 and leftovers[0].stat().st_size < len(good)
+    fresh = MapperCore(small_cfg(), MapperServiceOptions(**opts))
+    assert fresh.load_checkpoint() and (fresh.windows, fresh.ack) == (2, 5)
+
+
+def _field_of_checkpoint(path: Path) -> dict:
+    """A mapper checkpoint as the service loads it (weights_only: no pickle of arbitrary objects)."""
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+@pytest.mark.slow
+def test_mapper_kill9_resumes_from_the_last_checkpoint_losing_at_most_one_window(dataset, tmp_path):
+    """kill -9 of a mapper process busy in its third update; restarted with the same --out it
+    resumes from the checkpoint of the second (the one in progress is the only loss), maps the
+    rest, and its final map is bit-identical to an uninterrupted run (in-process reference)."""
+    import yaml
+
+    from services.mapper import MapperCore, MapperServiceOptions
+
+    over = {"iters_per_window": 40}  # ~0.4 s updates: the kill lands inside one
+    cfg = tmp_path / "m.yaml"
+    cfg.write_text(yaml.safe_dump(dict(SMALL_MAPPER, **over)))
+    out = tmp_path / "out"
+    ep = _ep()
+    argv = ["services.mapper", "--poses", "gt", "--config", str(cfg), "--out", str(out), "--threads", "1", "--no-mesh",
+            "--points-interval", "1000", "--keep-checkpoint"]
+    keys = P.Keys("crash")
+    session = zenoh.open(_conf(connect=[ep]))
+    mapper = Svc("mapper", argv, tmp_path, ep, ns="crash", interval=0.1)
+    restarted = None
+    try:
+        mapper.wait_for(lambda s: s.get("state") == "running", 120, "mapper up")
+        prod = Producer(session, keys, dataset)
+        prod.wait_matched()
+
+        def busy_in_third_update(s):  # frame 7 arrived and triggered update 3; updates 1-2 checkpointed
+            c = s.get("counters", {})
+            return c.get("frames_received", 0) >= 8 and c.get("windows") == 2 and c.get("checkpoints") == 2 \
+                and c.get("frames_processed") == 7
+
+        st = prod.stream(mapper, range(14), in_flight=2, stop_when=busy_in_third_update)
+        assert busy_in_third_update(st), st
+        os.kill(mapper.pid, signal.SIGKILL)
+        assert mapper.popen.wait(timeout=TIMEOUT) == -signal.SIGKILL
+        ck = _field_of_checkpoint(out / "checkpoint.pt")
+        assert ck["service"]["windows"] == 2 and ck["service"]["last_seq"] == 5
+        print(f"\n[crash] killed (SIGKILL) while busy in update 3: status said windows {st['counters']['windows']}, "
+              f"ack {st['frame_seq']}, frames received {st['counters']['frames_received']}; checkpoint on disk: "
+              f"windows {ck['service']['windows']}, last frame {ck['service']['last_seq']}")
+
+        restarted = Svc("mapper", argv, tmp_path, ep, ns="crash", interval=0.1)
+        st2 = restarted.wait_for(lambda s: s.get("state") == "running" and s["counters"].get("resumes") == 1, 120,
+                                 "resumed mapper up")
+        c2 = st2["counters"]
+        assert (c2["resumed_windows"], c2["resumed_at_seq"], st2["frame_seq"]) == (2, 5, 5), st2
+        assert st["counters"]["windows"] - c2["resumed_windows"] <= 1  # at most one update lost
+        assert "resumed from" in restarted.log()
+        prod.wait_matched()
+        prod.stream(restarted, range(st2["frame_seq"] + 1, 14), in_flight=2)  # the producer resends from the ack
+        restarted.wait_for(lambda s: s.get("frame_seq") == 13, TIMEOUT, "all frames mapped")
+        prod.pc.put(P.encode(P.Control("stop", {"reason": "end", "last_seq": 13})))
+        rc = restarted.popen.wait(timeout=120)
+        assert rc == 0, restarted.log()[-3000:]
+    finally:
+        session.close()
+        for s in (mapper, restarted):
+            if s is not None:
+                s.kill()
+    from fmapping.trajectory import read_tum_trajectory
+
+    ts, c2w = read_tum_trajectory(out / "traj.txt")
+    assert len(ts) == 14 and (out / "map.ply").is_file()
+    final = _field_of_checkpoint(out / "checkpoint.pt")  # --keep-checkpoint: the final state
+    # the uninterrupted reference, in this process
+    ref = MapperCore(small_cfg(**over), MapperServiceOptions(pose_source="gt", points_interval=1e9,
+                                                            checkpoint_every=0))
+    _feed(ref, dataset, range(14))
+    ref.finish()
+    assert final["service"]["windows"] == ref.windows
+    ref_field = ref.mapper.field.state_dict()
+    assert set(final["mapper"]["field"]) == set(ref_field)
+    for k, v in ref_field.items():
+        assert torch.equal(final["mapper"]["field"][k], v.detach().cpu()), k  # bit-identical
+    ref_poses = ref.mapper.frame_poses()
+    for i in range(14):  # exactly in the state; traj.txt is text (quaternions, ~1e-9 rounding)
+        assert torch.equal(final["mapper"]["poses"][i], torch.as_tensor(ref_poses[i])), i
+    np.testing.assert_allclose(c2w, np.stack([ref_poses[i] for i in range(14)]), atol=1e-6)
+    print(f"[crash] resumed at windows {c2['resumed_windows']} / frame {c2['resumed_at_seq']}; finished with "
+          f"{len(ts)} frames, {final['service']['windows']} updates; final field bit-identical to an uninterrupted run")
+
+
+@pytest.mark.slow
+def test_restarted_tracker_process_resyncs_from_the_latest_snapshot_query(dataset, tmp_path):
+    """A tracker process killed (-9) and started again while the mapper is idle gets the map only
+    through the map/latest query: it reports the mapper's newest version at once, then answers
+    the next frames (a first reference rendered from the map)."""
+    import yaml
+
+    cfg = tmp_path / "m.yaml"
+    cfg.write_text(yaml.safe_dump(SMALL_MAPPER))
+    ep_m, ep_t = _ep(), _ep()
+    keys = P.Keys("trk")
+    session = zenoh.open(_conf(connect=[ep_m]))
+    tracked: "queue.Queue[P.Pose]" = queue.Queue()
+    sub = session.declare_subscriber(keys.poses("tracker"), lambda s: tracked.put(P.decode(C.payload_bytes(s))))
+    mapper = Svc("mapper", ["services.mapper", "--poses", "gt", "--config", str(cfg), "--threads", "1",
+                            "--points-interval", "1000", "--checkpoint-every", "0"], tmp_path, ep_m, ns="trk")
+    targv = ["services.tracker", "--threads", "1", "--use-depth", "--query-timeout", "10"]
+    tracker = Svc("tracker", targv, tmp_path, ep_t, [ep_m], ns="trk")
+    again = None
+    try:
+        mapper.wait_for(lambda s: s.get("state") == "running", 120, "mapper up")
+        tracker.wait_for(lambda s: s.get("state") == "running", 120, "tracker up")
+        prod = Producer(session, keys, dataset)
+        prod.wait_matched()
+        prod.stream(mapper, range(8), in_flight=2)
+        ms = mapper.wait_for(lambda s: s.get("frame_seq") == 7 and s["counters"].get("windows") == 3, TIMEOUT, "map")
+        version = ms["counters"]["field_version"]
+        tracker.wait_for(lambda s: s.get("frame_seq") == 7 and s["counters"].get("field_version") == version,
+                         TIMEOUT, "tracker in sync")
+        os.kill(tracker.pid, signal.SIGKILL)
+        assert tracker.popen.wait(timeout=TIMEOUT) == -signal.SIGKILL
+        t0 = time.monotonic()
+        again = Svc("tracker", targv, tmp_path, ep_t, [ep_m], ns="trk")
+        st = again.wait_for(lambda s: s["counters"].get("field_version") == version, 120, "resync by query")
+        took = time.monotonic() - t0
+        assert st["counters"].get("snapshots") == 1 and mapper.counters().get("field_version") == version
+        assert mapper.counters().get("queries_answered", 0) >= 1
+        assert f"synced to map version {version} (frame 7)" in again.log()
+        while not tracked.empty():
+            tracked.get_nowait()
+        prod.send(8)
+        prod.send(9)
+        got = {}
+        end = time.monotonic() + TIMEOUT
+        while set(got) != {8, 9}:
+            p = tracked.get(timeout=max(0.1, end - time.monotonic()))
+            got[p.seq] = p
+        c = again.wait_for(lambda s: s.get("frame_seq") == 9, TIMEOUT, "answers")["counters"]
+        assert c.get("references_rendered", 0) + c.get("reference_failures", 0) >= 1, c
+        print(f"\n[crash] tracker killed (-9) and restarted: synced to map version {version} by query "
+              f"{took:.1f} s after the restart (process start included); answered frames 8, 9 "
+              f"(quality {got[8].quality}, {got[9].quality})")
+    finally:
+        sub.undeclare()
+        session.close()
+        for s in (again, tracker, mapper):
+            if s is not None:
+                s.kill()
+
+
+# ============================================================================ 4. shutdown
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_every_service_stops_within_5_seconds_on_a_signal_while_busy(scene, tmp_path, sig):
+    """mapper, tracker, io play (looping), io record and io view, all busy on a live run, get the
+    signal at the same moment: each exits with code 0 within 5 s; the mapper first writes its
+    current map and trajectory, record its trajectories, view its recording.
+    (test_services.py covers a SIGTERM inside a mapping update.)"""
+    import yaml
+
+    from fmapping.trajectory import read_tum_trajectory
+
+    cfg = tmp_path / "m.yaml"
+    cfg.write_text(yaml.safe_dump(SMALL_MAPPER))
+    out = tmp_path / "out"
+    eps: list = []
+
+    def start(name, argv):
+        ep = _ep()
+        s = Svc(name, argv, tmp_path, ep, list(eps), ns="sd")
+        eps.append(ep)
+        return s
+
+    procs = {}
+    try:
+        procs["mapper"] = start("mapper", ["services.mapper", "--poses", "gt", "--config", str(cfg), "--out", str(out),
+                                           "--threads", "1", "--points-interval", "1"])
+        procs["tracker"] = start("tracker", ["services.tracker", "--threads", "1", "--use-depth"])
+        procs["record"] = start("record", ["services.io", "record", "--out", str(out / "record"), "--source", "gt"])
+        procs["view"] = start("view", ["services.io", "view", "--save", str(out / "run.rrd")])
+        procs["play"] = start("play", ["services.io", "play", "--data", str(scene), "--loop", "--ack-from", "mapper",
+                                       "--wait-for", "mapper,tracker,record,view", "--start-timeout", "120"])
+        procs["mapper"].wait_for(lambda s: s["counters"].get("windows", 0) >= 3, 180, "mapping under way")
+        for name in ("tracker", "record", "view"):
+            procs[name].wait_for(lambda s: s.get("frame_seq", -1) >= 0, TIMEOUT, f"{name} busy")
+        before = {n: p.status() for n, p in procs.items()}
+        t0 = time.monotonic()
+        for p in procs.values():
+            p.popen.send_signal(sig)
+        took: dict = {}
+        while len(took) < len(procs) and time.monotonic() - t0 < 30:
+            for n, p in procs.items():
+                if n not in took and p.popen.poll() is not None:
+                    took[n] = time.monotonic() - t0
+            time.sleep(0.01)
+        rcs = {n: p.popen.poll() for n, p in procs.items()}
+    finally:
+        for p in procs.values():
+            p.kill()
+    logs = {n: p.log()[-1500:] for n, p in procs.items()}
+    print(f"\n[shutdown] {sig.name} to all five at once: " + ", ".join(f"{n} {took.get(n, float('inf')):.2f} s"
+                                                                    for n in procs))
+    assert rcs == {n: 0 for n in procs}, (rcs, logs)
+    assert max(took.values()) < 5.0, (took, logs)
+    # what each wrote on the way out
+    mapped = int(before["mapper"]["counters"]["frames_processed"])
+    ts, _ = read_tum_trajectory(out / "traj.txt")
+    assert len(ts) >= mapped, (len(ts), mapped)
+    assert (out / "map.ply").is_file() and json.loads((out / "stats.json").read_text())["final"] is False
+    assert json.loads(procs["mapper"].status_file.read_text())["state"] == "done"
+    assert (out / "record" / "record.json").is_file() and (out / "record" / "traj.txt").is_file()
+    assert (out / "run.rrd").stat().st_size > 1000
+
+
+# ============================================================================ 5. determinism
+def map_digest(scene_dir: str, frames: int = 10, threads: int = 1) -> str:
+    """sha256 over the field tensors (name, dtype, shape, bytes) and every frame pose after mapping
+    ``frames`` frames of ``scene_dir`` through a MapperCore (GT poses) and its closing stage."""
+    from fmapping.datasets import open_dataset
+    from services.mapper import MapperCore, MapperServiceOptions
+
+    torch.set_num_threads(threads)
+    ds = open_dataset(scene_dir)
+    core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", points_interval=1e9, checkpoint_every=0))
+    _feed(core, ds, range(frames))
+    core.finish()
+    h = hashlib.sha256()
+    for k, v in sorted(core.mapper.field.state_dict().items()):
+        t = v.detach().cpu().contiguous()
+        h.update(f"{k}:{t.dtype}:{tuple(t.shape)}".encode())
+        h.update(t.numpy().tobytes())
+    for i, p in sorted(core.mapper.frame_poses().items()):
+        h.update(np.ascontiguousarray(p).tobytes())
+    return h.hexdigest()
+
+
+def test_same_seed_input_and_config_give_the_same_map_on_cpu(scene):
+    """Two runs in this process: identical field and poses, bit for bit."""
+    a, b = map_digest(str(scene), 8), map_digest(str(scene), 8)
+    print(f"\n[determinism] map digest: run 1 {a[:16]}, run 2 {b[:16]}")
+    assert a == b
+
+
+@pytest.mark.slow
+def test_same_map_in_another_process(scene):
+    """A fresh interpreter (same torch build, one thread) maps to the same bits as this process."""
+    code = ("import sys; sys.path[:0] = [sys.argv[1], sys.argv[1] + '/tests']; import test_reliability as T; "
+            "print(T.map_digest(sys.argv[2], 8))")
+    r = subprocess.run([sys.executable, "-c", code, str(ROOT), str(scene)], cwd=ROOT, env=_env(), capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    other, here = r.stdout.strip().splitlines()[-1], map_digest(str(scene), 8)
+    print(f"\n[determinism] map digest: this process {here[:16]}, another process {other[:16]}")
+    assert here == other
+
+
+# ============================================================================ 6. external producer naming
+def test_external_pose_producer_reports_the_status_name_the_launcher_waits_for(dataset, tmp_path, zpair):
+    """examples/publish_poses.py over zenoh: status on status/external (what ``fmapping up --poses
+    external`` makes play wait for) and poses on poses/external (what ``--poses external`` maps from)."""
+    from fmapping.launcher import EXTERNAL_SOURCE, play_wait_for
+    from fmapping.trajectory import write_tum_trajectory
+
+    sys.path.insert(0, str(ROOT / "examples"))
+    try:
+        import publish_poses
+    finally:
+        sys.path.pop(0)
+    a, b, ep = zpair
+    keys = P.Keys("ext")
+    traj = tmp_path / "traj.txt"
+    write_tum_trajectory(traj, np.asarray(dataset.timestamps), np.stack([dataset[i].c2w for i in range(len(dataset))]))
+    watch = StatusWatch(a, keys.status(EXTERNAL_SOURCE))
+    poses: "queue.Queue[P.Pose]" = queue.Queue()
+    a.declare_subscriber(keys.poses("external"), lambda s: poses.put(P.decode(C.payload_bytes(s), P.Pose)))
+    thread, errors = _start_thread(publish_poses.main, ["--traj", str(traj), "--connect", ep, "--listen",
+                                                        _ep(), "--ns", "ext", "--status-interval", "0.1"])
+    st = watch.wait(lambda s: s.state == "running", what="status/external")
+    assert st.service == EXTERNAL_SOURCE and st.service in play_wait_for("external")
+    assert play_wait_for("external", view=False) == ["mapper", "record", "external"]
+    pub = a.declare_publisher(keys.frames, congestion_control=zenoh.CongestionControl.BLOCK)
+    end = time.monotonic() + TIMEOUT
+    while not pub.matching_status.matching:
+        assert time.monotonic() < end
+        time.sleep(0.01)
+    pub.put(P.encode(P.frame_from_dataset(dataset[4], seq=4)))
+    p = poses.get(timeout=TIMEOUT)
+    assert p.seq == 4 and p.source == "external" and p.quality is None
+    np.testing.assert_allclose(p.c2w, dataset[4].c2w, atol=1e-6)
+    a.declare_publisher(keys.control).put(P.encode(P.Control("stop", {"reason": "end", "last_seq": 4})))
+    thread.join(timeout=TIMEOUT)
+    assert not thread.is_alive() and not errors
+
+
+# ============================================================================ fixes the fuzzing asked for
+def test_a_first_frame_the_services_cannot_use_is_rejected_not_adopted(dataset):
+    """The first frame fixes a service's camera. One the mapper / tracker cannot use (distortion
+    coefficients, a principal point far outside the image) is counted and rejected, and the next
+    good frame still starts the stream (before the fix it was adopted and every later frame failed)."""
+    from services.mapper import MapperCore, MapperServiceOptions
+    from services.tracker import TrackerCore
+
+    good = P.frame_from_dataset(dataset[0], seq=0)
+    distorted = dataclasses.replace(good, camera=dict(good.camera, dist=[0.1, 0.0, 0.0, 0.0]))
+    far_pp = dataclasses.replace(good, camera=dict(good.camera, cx=40.0 * good.camera["width"]))
+    for core in (MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", checkpoint_every=0)), TrackerCore()):
+        bad = [distorted, far_pp] if isinstance(core, MapperCore) else [far_pp]
+        for f in bad:
+            assert core.handle("frames", P.encode(f)) == []
+        assert core.camera_dict is None and core.counters.get("rejected_frames") == len(bad)
+        assert core.counters.get("bad_input") == len(bad)
+        core.handle("frames", P.encode(good))
+        assert core.camera_dict == P.decode(P.encode(good)).camera
+
+
+def test_min_field_elements_is_a_lower_bound_for_every_field_kind():
+    """The tracker refuses a snapshot whose config needs more parameters than the snapshot carries
+    (before building anything); for real fields of every kind the bound holds and is not loose."""
+    from fmapping.field import FieldConfig, build_field
+    from services.tracker import min_field_elements
+
+    aabb = np.array([[-1.0, -1, -1], [1, 1, 1]])
+    for kw in ({"kind": "cp", "resolution": 12, "density_components": 4, "appearance_components": 4},
+               {"kind": "cp", "resolution": 64, "view_dependent": True},
+               {"kind": "vm", "resolution": 16, "vm_density_components": 2, "vm_appearance_components": 3},
+               {"kind": "grid", "grid_resolution": 12, "grid_features": 4},
+               {"kind": "mlp", "mlp_width": 32, "mlp_layers": 3, "pe_freqs": 4}):
+        cfg = FieldConfig(**kw)
+        n = sum(v.numel() for v in build_field(cfg, aabb).state_dict().values())
+        bound = min_field_elements(cfg)
+        assert 0.5 * n <= bound <= n, (kw, bound, n)
