@@ -1,0 +1,231 @@
+"""Tracking benchmark: the direct (fast) path, the monocular front end, render-and-compare and kiss-icp
+side by side on the same frames.
+
+Data: a synthetic room (``fmapping synth`` seed 0, generated into ``--work`` when
+missing) at 320x240, and the TUM fr1_rpy clip in ``../shared/data`` when present.
+
+Methods (each on the same frames, one process, ``torch`` on ``--threads``):
+
+* ``direct_gt_depth``  - :class:`DirectTracker` against keyframes whose depth is the
+  dataset's depth image (the tracker itself, isolated from depth quality);
+* ``direct_map_depth`` - the same against keyframes whose depth is rendered from a map
+  (built first by the mapper from GT poses + depth on the benchmark frames);
+* ``render_compare``   - Adam on se(3) through the same map (the paper-style path), from
+  the previous estimate with a constant-velocity prediction;
+* ``mono``             - the RGB-only front end (two-view bootstrap, sparse depth, BA),
+  scale anchored with the GT baseline of its bootstrap;
+* ``kiss_icp``         - kiss-icp on back-projected depth.
+
+Per method: milliseconds per frame (min, median), frames per second at the median,
+ATE RMSE (SE3, Sim3, unaligned) and mean rotation error. Timings on a shared CPU are
+noisy (report min and median). Writes ``bench/results/tracking.json``.
+
+    PYTHONPATH=. .venv/bin/python bench/tracking.py --frames 60
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+TUM = ROOT.parent / "shared" / "data" / "tum_fr1_rpy"
+
+
+def _ate(est, gt) -> dict:
+    from fmapping.metrics import ate
+
+    out = {}
+    for a in ("se3", "sim3", "none"):
+        r = ate(np.stack(est), np.stack(gt), a)
+        out[a] = {"rmse_m": r["rmse_m"], "rot_err_mean_deg": r["rot_err_mean_deg"], "scale": r["scale"]}
+    return out
+
+
+def _timing(ms) -> dict:
+    ms = np.asarray(ms, np.float64)
+    return {"ms_min": float(ms.min()), "ms_median": float(np.median(ms)), "fps_median": float(1000 / np.median(ms)),
+            "frames": int(len(ms))}
+
+
+def run_direct(frames, camera, depth_of) -> dict:
+    """``depth_of(i, c2w)`` -> depth image or uv callable for a new keyframe at frame i."""
+    from fmapping.tracking.frontend import DirectTracker
+
+    tr = DirectTracker(camera)
+    gt0 = frames[0].c2w
+    tr.set_reference(frames[0].rgb, depth_of(0, gt0), gt0, 0)
+    tr.observe(gt0)
+    est, ms, lost, kfs = [gt0], [], 0, 1
+    kf_ms = []
+    for i in range(1, len(frames)):
+        r = tr.track(frames[i].rgb)
+        ms.append(r.ms)
+        est.append(r.c2w)
+        lost += r.lost
+        if r.need_keyframe:
+            t0 = time.perf_counter()
+            try:
+                tr.set_reference(frames[i].rgb, depth_of(i, r.c2w), r.c2w, i)
+                kfs += 1
+            except ValueError:
+                pass
+            kf_ms.append((time.perf_counter() - t0) * 1000)
+    out = {**_timing(ms), "lost": int(lost), "keyframes": kfs,
+           "keyframe_ms_median": float(np.median(kf_ms)) if kf_ms else None,
+           "ate": _ate(est, [f.c2w for f in frames])}
+    return out
+
+
+def run_mono(frames, camera) -> dict:
+    from fmapping.tracking.mono import MonoFrontend
+
+    fe = MonoFrontend(camera)
+    g0 = frames[0].c2w
+    anchor = lambda k: float(np.linalg.norm(frames[k].c2w[:3, 3] - g0[:3, 3]))  # noqa: E731
+    ms, est, lost = [], {}, 0
+    i = 0
+    t0 = time.perf_counter()
+    while i < len(frames) and not fe.initialized and not fe.failed:
+        out = fe.bootstrap(i, frames[i].rgb, g0, anchor)
+        i += 1
+    boot_ms = (time.perf_counter() - t0) * 1000
+    if not fe.initialized:
+        return {"error": f"bootstrap failed after {i} frames"}
+    est.update(out)
+    for j in range(i, len(frames)):
+        r = fe.track(j, frames[j].rgb)
+        ms.append(r.ms)
+        est[j] = r.c2w
+        lost += r.lost
+    est.update(fe.poses())
+    ids = sorted(est)
+    return {**_timing(ms), "lost": int(lost), "bootstrap": fe.init_info, "bootstrap_ms_total": boot_ms,
+            "ba_ms_median": float(np.median([b["ms"] for b in fe.ba_stats])) if fe.ba_stats else None,
+            "reinit": list(fe.reinits),
+            "ate": _ate([est[k] for k in ids], [frames[k].c2w for k in ids])}
+
+
+def run_kiss(frames, camera) -> dict:
+    from fmapping.tracking.sources import KissIcpOdometry, default_kiss_config_for
+
+    cfg = default_kiss_config_for(camera, frames[0].depth)
+    odo = KissIcpOdometry(camera, cfg, frames[0].c2w)
+    est, ms = [], []
+    for f in frames:
+        t0 = time.perf_counter()
+        est.append(odo.register(f.depth))
+        ms.append((time.perf_counter() - t0) * 1000)
+    return {**_timing(ms[1:]), "voxel_size": cfg.voxel_size, "ate": _ate(est, [f.c2w for f in frames])}
+
+
+def build_map(frames, camera, iters: int):
+    """A map of the benchmark frames from GT poses + depth (what the trackers are compared against)."""
+    from fmapping.mapper import Mapper, MapperConfig
+
+    cfg = MapperConfig(use_depth=True, optimize_init_poses=False, init_frames=min(15, len(frames)),
+                       final_global_iters=iters, device="cpu")
+    m = Mapper(cfg, camera)
+    t0 = time.perf_counter()
+    for f in frames:
+        m.add_frame(f.rgb, f.c2w, f.timestamp, f.depth)
+    m.finish()
+    return m, time.perf_counter() - t0
+
+
+def run_render_compare(frames, camera, view, iterations: int) -> dict:
+    from fmapping.tracking.direct import inv_pose, orthonormalize
+    from fmapping.tracking.render_compare import RenderCompareConfig, RenderCompareTracker
+
+    rc = RenderCompareTracker(view, RenderCompareConfig(iterations=iterations))
+    est, ms = [frames[0].c2w], []
+    prev = frames[0].c2w
+    for f in frames[1:]:
+        pred = est[-1] @ (inv_pose(prev) @ est[-1]) if len(est) > 1 else est[-1]
+        prev = est[-1]
+        r = rc.track(f.rgb, orthonormalize(pred))
+        ms.append(r.ms)
+        est.append(r.c2w)
+    return {**_timing(ms), "iterations": iterations, "ate": _ate(est, [f.c2w for f in frames])}
+
+
+def bench_dataset(name: str, frames, camera, args) -> dict:
+    from fmapping.tracking.mapview import MapView
+
+    res = {"frames": len(frames), "size": [camera.width, camera.height]}
+    print(f"[{name}] direct, GT depth ...", flush=True)
+    res["direct_gt_depth"] = run_direct(frames, camera, lambda i, c2w: frames[i].depth)
+    print(f"[{name}] mono (RGB only) ...", flush=True)
+    res["mono"] = run_mono(frames, camera)
+    if frames[0].depth is not None:
+        print(f"[{name}] kiss-icp ...", flush=True)
+        res["kiss_icp"] = run_kiss(frames, camera)
+    if not args.no_map:
+        print(f"[{name}] building a map from GT poses + depth ...", flush=True)
+        m, secs = build_map(frames[: args.map_frames], camera, args.map_final_iters)
+        view = MapView.from_mapper(m)
+        res["map"] = {"seconds": secs, "frames": min(args.map_frames, len(frames))}
+        sub = frames[: args.map_frames]
+        print(f"[{name}] direct, map depth ...", flush=True)
+        try:
+            res["direct_map_depth"] = run_direct(sub, camera, lambda i, c2w: view.depth_fn(c2w))
+        except ValueError as e:
+            res["direct_map_depth"] = {"error": str(e)}
+        print(f"[{name}] render-and-compare ...", flush=True)
+        res["render_compare"] = run_render_compare(sub[: args.rc_frames], camera, view, args.rc_iters)
+    return res
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--work", default=str(ROOT / "out" / "bench_tracking"))
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--no-map", action="store_true", help="skip the map-based methods (mapping is slow)")
+    ap.add_argument("--map-frames", type=int, default=30)
+    ap.add_argument("--map-final-iters", type=int, default=100)
+    ap.add_argument("--rc-frames", type=int, default=10)
+    ap.add_argument("--rc-iters", type=int, default=30)
+    ap.add_argument("--tum-camera", default=None, help="--camera for TUM (e.g. with distortion); default calib.txt")
+    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "tracking.json"))
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+
+    from fmapping.datasets import open_dataset
+    from fmapping.synthetic import generate_scene
+
+    results = {"host": platform.node(), "threads": args.threads, "note": "shared 2-core CPU: timings are noisy"}
+    syn = Path(args.work) / "syn0"
+    if not (syn / "scene.json").is_file():
+        print(f"generating synthetic scene in {syn} ...", flush=True)
+        generate_scene(syn, seed=0, frames=max(args.frames, 60), size=(320, 240))
+    ds = open_dataset(syn, max_frames=args.frames)
+    frames = [ds[i] for i in range(len(ds))]
+    results["synthetic_320x240"] = bench_dataset("synthetic", frames, ds.camera, args)
+    if TUM.is_dir():
+        ds = open_dataset(TUM, camera=args.tum_camera, max_frames=args.frames)
+        frames = [ds[i] for i in range(len(ds))]
+        results["tum_fr1_rpy_640x480"] = bench_dataset("tum", frames, ds.camera, args)
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(results, indent=2, default=str))
+    for dname, d in results.items():
+        if not isinstance(d, dict):
+            continue
+        for meth, r in d.items():
+            if isinstance(r, dict) and "ms_median" in r:
+                a = r.get("ate", {})
+                print(f"{dname:22s} {meth:18s} ms min {r['ms_min']:7.1f} median {r['ms_median']:7.1f} "
+                      f"({r['fps_median']:5.1f} fps)  ATE se3 {a.get('se3', {}).get('rmse_m', float('nan')):.4f} m "
+                      f"sim3 {a.get('sim3', {}).get('rmse_m', float('nan')):.4f} m "
+                      f"rot(none) {a.get('none', {}).get('rot_err_mean_deg', float('nan')):.2f} deg")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

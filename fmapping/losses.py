@@ -1,0 +1,235 @@
+"""Mapping losses: photometric, multi-view warping (photo-consistency), depth.
+
+Conventions follow :mod:`fmapping.geometry` and :mod:`fmapping.camera`: poses are
+camera-to-world 4x4, rays have z-normalised directions so a rendered "depth" ``t``
+is the camera z of the point ``o + t * d``; images are float tensors (V, H, W, C)
+in [0, 1]; pixel centres are integer coordinates.
+
+The warping loss is the load-bearing geometric signal of RGB-only mapping: a
+pixel's rendered depth is lifted to 3D, projected into the other frames of the
+window, and the colour patches there are compared with the patch around the
+pixel in its own frame. Gradients reach the depth (hence the field) through the
+bilinear image sampling, and the poses through the projection. Views where the
+point falls outside the image or behind the camera are masked; occlusions are
+handled robustly by averaging only the best fraction of the views (as in
+multi-view stereo), and optionally by a depth test against rendered depth maps.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from fmapping.camera import PinholeCamera
+from fmapping.geometry import se3_inverse
+
+
+def photometric_loss(pred: Tensor, target: Tensor, kind: str = "l2", delta: float = 0.1,
+                     weight: Optional[Tensor] = None) -> Tensor:
+    """Mean colour error: ``"l2"`` (squared error) or ``"huber"`` (quadratic below ``delta``).
+
+    ``weight`` (N,) optionally weighs rays; the result is the weighted mean.
+    """
+    if pred.shape != target.shape:
+        raise ValueError(f"photometric_loss: shapes differ, pred {tuple(pred.shape)} vs target {tuple(target.shape)}")
+    if kind == "l2":
+        err = (pred - target) ** 2
+    elif kind == "huber":
+        err = F.huber_loss(pred, target, reduction="none", delta=delta)
+    elif kind == "l1":
+        err = (pred - target).abs()
+    else:
+        raise ValueError(f"photometric_loss: unknown kind {kind!r} (l2, huber, l1)")
+    err = err.mean(-1) if err.dim() > 1 else err
+    if weight is None:
+        return err.mean()
+    return (err * weight).sum() / weight.sum().clamp_min(1e-8)
+
+
+def depth_l1_loss(pred: Tensor, target: Tensor) -> Tensor:
+    """Mean |pred - target| over pixels with valid (> 0, finite) target depth; 0 when none."""
+    valid = torch.isfinite(target) & (target > 0)
+    if not bool(valid.any()):
+        return pred.sum() * 0.0
+    return (pred[valid] - target[valid]).abs().mean()
+
+
+def patch_offsets(radius: int = 1, dilation: float = 1.0, device=None, dtype=torch.float32) -> Tensor:
+    """Pixel offsets (P, 2) of a (2r+1)^2 square patch, spaced ``dilation`` pixels."""
+    r = torch.arange(-radius, radius + 1, device=device, dtype=dtype) * dilation
+    dv, du = torch.meshgrid(r, r, indexing="ij")
+    return torch.stack([du.reshape(-1), dv.reshape(-1)], -1)
+
+
+def sample_views(images: Tensor, uv: Tensor) -> Tensor:
+    """Bilinear lookup in a stack of images.
+
+    images (V, H, W, C); uv (V, M, 2) pixel coordinates per view -> (V, M, C),
+    border-clamped (callers mask out-of-view points themselves). Differentiable
+    w.r.t. ``uv`` (and the images).
+    """
+    v, h, w, c = images.shape
+    grid = torch.stack([(uv[..., 0] + 0.5) / w * 2 - 1, (uv[..., 1] + 0.5) / h * 2 - 1], -1)
+    out = F.grid_sample(images.permute(0, 3, 1, 2), grid[:, :, None].to(images.dtype), mode="bilinear",
+                        padding_mode="border", align_corners=False)  # (V, C, M, 1)
+    return out[..., 0].permute(0, 2, 1)
+
+
+def sample_frames(images: Tensor, frame: Tensor, uv: Tensor) -> Tensor:
+    """Bilinear lookup of point ``i`` in image ``frame[i]``: images (V,H,W,C), frame (N,), uv (N,P,2) -> (N,P,C)."""
+    n, p = uv.shape[:2]
+    vcount = images.shape[0]
+    out = torch.zeros(n, p, images.shape[-1], dtype=images.dtype, device=images.device)
+    # group by frame so every image is read once (V is small: the window)
+    for f in torch.unique(frame).tolist():
+        sel = (frame == f).nonzero(as_tuple=True)[0]
+        if not 0 <= f < vcount:
+            raise ValueError(f"sample_frames: frame index {f} outside 0..{vcount - 1}")
+        out[sel] = sample_views(images[f:f + 1], uv[sel].reshape(1, -1, 2))[0].reshape(len(sel), p, -1)
+    return out
+
+
+@dataclass
+class WarpResult:
+    loss: Tensor  # scalar
+    per_ray: Tensor  # (N,) robust per-ray error (0 where no valid view)
+    valid_rays: Tensor  # (N,) bool: at least ``min_views`` views passed the masks
+    errors: Tensor  # (N, V) per-view patch error (inf where masked)
+    mask: Tensor  # (N, V) bool: view usable for the ray
+
+
+def warping_loss(
+    origins: Tensor,
+    dirs: Tensor,
+    depth: Tensor,
+    uv: Tensor,
+    src: Tensor,
+    images: Tensor,
+    c2w: Tensor,
+    camera: PinholeCamera,
+    radius: int = 1,
+    dilation: float = 1.0,
+    keep: float = 0.5,
+    min_views: int = 1,
+    min_z: float = 0.05,
+    view_depths: Optional[Tensor] = None,
+    occlusion_tol: float = 0.1,
+    ref_colors: Optional[Tensor] = None,
+    ray_weight: Optional[Tensor] = None,
+) -> WarpResult:
+    """Multi-view photo-consistency of rendered depth.
+
+    origins, dirs (N, 3): the world rays of the pixels (z-normalised dirs, as rendered);
+    depth (N,): rendered depth along them; uv (N, 2) the pixels and src (N,) long the
+    index of their frame in ``images`` (V, H, W, C) / ``c2w`` (V, 4, 4).
+
+    For every ray and every other view: project ``x = o + depth * d``, sample a
+    (2r+1)^2 patch (offsets spaced ``dilation`` px) there and compare it with the
+    patch around ``uv`` in the source image (mean absolute difference over patch
+    and channels). Masks: the source view itself, points with camera z < ``min_z``,
+    patches not fully inside the image, and - when ``view_depths`` (V, H, W) rendered
+    depth maps are given - points more than ``occlusion_tol`` (relative) behind the
+    surface that view sees. The per-ray error is the mean of the lowest
+    ``ceil(keep * valid)`` view errors (``keep=0`` -> the minimum); the loss is its mean
+    over rays with at least ``min_views`` valid views (optionally weighted by ``ray_weight``).
+    """
+    n = depth.shape[0]
+    v = images.shape[0]
+    dev, dt = depth.device, images.dtype
+    if c2w.shape != (v, 4, 4):
+        raise ValueError(f"warping_loss: c2w must be ({v}, 4, 4) for {v} images, got {tuple(c2w.shape)}")
+    pts = origins + dirs * depth[:, None]  # (N, 3) world
+    w2c = se3_inverse(c2w)  # (V, 4, 4)
+    cam_pts = torch.einsum("vij,nj->vni", w2c[:, :3, :3], pts) + w2c[:, None, :3, 3]  # (V, N, 3)
+    z = cam_pts[..., 2]
+    zs = torch.where(z.abs() < 1e-6, torch.full_like(z, 1e-6), z)
+    uv_t = torch.stack([camera.fx * cam_pts[..., 0] / zs + camera.cx, camera.fy * cam_pts[..., 1] / zs + camera.cy], -1)
+    off = patch_offsets(radius, dilation, device=dev, dtype=uv_t.dtype)  # (P, 2)
+    p = off.shape[0]
+    margin = radius * dilation
+    mask = (z > min_z) & camera.in_image(uv_t, margin=margin)  # (V, N)
+    mask &= src[None, :] != torch.arange(v, device=dev)[:, None]
+    if view_depths is not None:
+        d_at = sample_views(view_depths[..., None], uv_t.detach())[..., 0]  # (V, N)
+        mask &= ~((d_at > 0) & (z.detach() > d_at * (1 + occlusion_tol)))
+    # target patches (V, N, P, C)
+    tgt = sample_views(images, (uv_t[:, :, None, :] + off).reshape(v, n * p, 2)).reshape(v, n, p, -1)
+    if ref_colors is None:
+        ref_colors = sample_frames(images, src, uv[:, None, :] + off)  # (N, P, C)
+    err = (tgt - ref_colors[None]).abs().mean((-1, -2))  # (V, N)
+    err = err.T  # (N, V)
+    mask = mask.T
+    big = torch.finfo(err.dtype).max
+    e_masked = torch.where(mask, err, torch.full_like(err, big))
+    nvalid = mask.sum(-1)
+    k = torch.clamp(torch.ceil(keep * nvalid.to(err.dtype)).long(), min=1)
+    order = torch.argsort(e_masked.detach(), dim=-1)
+    rank = torch.empty_like(order)
+    rank.scatter_(1, order, torch.arange(v, device=dev).expand(n, v).contiguous())
+    use = mask & (rank < k[:, None])
+    per_ray = (torch.where(use, err, torch.zeros_like(err))).sum(-1) / k.to(err.dtype)
+    valid = nvalid >= max(1, min_views)
+    per_ray = torch.where(valid, per_ray, torch.zeros_like(per_ray))
+    if ray_weight is not None:
+        wv = ray_weight * valid.to(err.dtype)
+        loss = (per_ray * wv).sum() / wv.sum().clamp_min(1e-8)
+    else:
+        loss = per_ray.sum() / valid.sum().clamp_min(1)
+    return WarpResult(loss=loss, per_ray=per_ray, valid_rays=valid,
+                      errors=torch.where(mask, err.detach(), torch.full_like(err, math.inf)), mask=mask)
+
+
+def sample_consistency_cost(
+    points: Tensor,
+    ref_colors: Tensor,
+    src: Tensor,
+    images: Tensor,
+    c2w: Tensor,
+    camera: PinholeCamera,
+    radius: int = 1,
+    dilation: float = 1.0,
+    keep: float = 0.5,
+    min_z: float = 0.05,
+    no_view_cost: float = 0.0,
+) -> tuple[Tensor, Tensor]:
+    """Photo-consistency cost of every ray sample (a plane-sweep style cost volume).
+
+    points (N, S, 3) world samples of N rays from frames ``src`` (N,);
+    ref_colors (N, P, C) the source patch of each ray. Each sample is projected
+    into every other view; the cost is the robust mean (best ``keep`` fraction) of
+    patch errors. Returns cost (N, S) and the number of valid views (N, S).
+    Samples seen by no other view get ``no_view_cost``. Not differentiable by design
+    (used as a fixed per-sample target for the rendering weights).
+    """
+    with torch.no_grad():
+        n, s, _ = points.shape
+        v = images.shape[0]
+        dev = points.device
+        w2c = se3_inverse(c2w)
+        flat = points.reshape(-1, 3)
+        cam_pts = torch.einsum("vij,mj->vmi", w2c[:, :3, :3], flat) + w2c[:, None, :3, 3]  # (V, NS, 3)
+        z = cam_pts[..., 2]
+        zs = torch.where(z.abs() < 1e-6, torch.full_like(z, 1e-6), z)
+        uv_t = torch.stack([camera.fx * cam_pts[..., 0] / zs + camera.cx, camera.fy * cam_pts[..., 1] / zs + camera.cy], -1)
+        off = patch_offsets(radius, dilation, device=dev, dtype=uv_t.dtype)
+        p = off.shape[0]
+        mask = (z > min_z) & camera.in_image(uv_t, margin=radius * dilation)
+        src_rep = src[:, None].expand(n, s).reshape(-1)
+        mask &= src_rep[None, :] != torch.arange(v, device=dev)[:, None]
+        tgt = sample_views(images, (uv_t[:, :, None, :] + off).reshape(v, -1, 2)).reshape(v, n, s, p, -1)
+        err = (tgt - ref_colors[None, :, None]).abs().mean((-1, -2)).reshape(v, -1).T  # (NS, V)
+        mask = mask.T
+        e_masked = torch.where(mask, err, torch.full_like(err, math.inf))
+        srt, _ = torch.sort(e_masked, dim=-1)
+        nvalid = mask.sum(-1)
+        k = torch.clamp(torch.ceil(keep * nvalid.to(err.dtype)).long(), min=1)
+        ranks = torch.arange(v, device=dev)[None, :]
+        use = ranks < k[:, None]
+        srt = torch.where(use & torch.isfinite(srt), srt, torch.zeros_like(srt))
+        cost = srt.sum(-1) / k.to(err.dtype)
+        cost = torch.where(nvalid > 0, cost, torch.full_like(cost, no_view_cost))
+        return cost.reshape(n, s), nvalid.reshape(n, s)

@@ -1,0 +1,242 @@
+"""The mapping job behind ``fmapping map`` and ``fmapping demo``.
+
+``run_map(args)`` opens a dataset, streams its frames with known poses (ground truth
+or a TUM trajectory file) into a :class:`fmapping.mapper.Mapper`, exports the map and
+writes into ``args.out``:
+
+* ``map.ply``    coloured point cloud (:func:`fmapping.export.export_point_cloud`),
+* ``mesh.ply``   coloured mesh (:func:`fmapping.export.export_mesh`),
+* ``traj.txt``   the poses used (refined for the init frames when pose optimisation is on), TUM format,
+* ``stats.json`` config, dataset description (intrinsics, depth scale), parameter
+  count, per-window seconds, totals, held-out PSNR and - when the dataset ships a
+  visible GT cloud (``meta["gt_visible_cloud"]``) - reconstruction metrics.
+
+Scene bounds: the config ``bbox`` when set, else the room bounds that ``fmapping synth``
+writes in ``scene.json`` (as NICE-SLAM configs give per-scene bounds), else the box of
+the back-projected depth (with ``--use-depth``), else the view frusta of all given poses
+between ``near`` and ``far``.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from fmapping.config import load_config, to_dict
+from fmapping.mapper import Mapper, MapperConfig, aabb_from_depth, aabb_from_poses
+
+log = logging.getLogger("fmapping.pipeline")
+
+
+def _pose_source(ds, poses_arg: str) -> list:
+    """Per-frame c2w (or None when unknown) from ``"gt"`` or a TUM trajectory file."""
+    if poses_arg == "gt":
+        if not any(p is not None for p in ds.gt_poses):
+            raise ValueError(f"--poses gt: dataset {ds.root} has no ground-truth poses; give a trajectory file")
+        return list(ds.gt_poses)
+    from fmapping.trajectory import associate, read_tum_trajectory
+
+    path = Path(poses_arg)
+    if not path.is_file():
+        raise FileNotFoundError(f"--poses: trajectory file not found: {path}")
+    ts, c2w = read_tum_trajectory(path)
+    idx = associate(np.asarray(ds.timestamps, np.float64), ts, max_dt=0.02)
+    if (idx < 0).all():
+        raise ValueError(f"--poses {path}: no timestamp matches the dataset frames within 0.02 s")
+    return [c2w[j] if j >= 0 else None for j in idx]
+
+
+def _scene_aabb(ds, cfg: MapperConfig, poses: list) -> Optional[np.ndarray]:
+    if cfg.bbox is not None:
+        return None  # the mapper takes it from its config
+    scene = ds.meta.get("scene") if isinstance(ds.meta, dict) else None
+    if isinstance(scene, dict) and isinstance(scene.get("bbox"), dict):
+        b = scene["bbox"]
+        return np.stack([np.asarray(b["min"], np.float64) - cfg.bbox_margin,
+                         np.asarray(b["max"], np.float64) + cfg.bbox_margin])
+    known = [(i, p) for i, p in enumerate(poses) if p is not None]
+    if cfg.use_depth and ds.has_depth:
+        step = max(1, len(known) // 30)
+        sel = known[::step]
+        box = aabb_from_depth(np.stack([p for _, p in sel]), [ds[i].depth for i, _ in sel], ds.camera, cfg.bbox_margin)
+        if box is not None:
+            return box
+    return aabb_from_poses(np.stack([p for _, p in known]), ds.camera, cfg.near, cfg.far, cfg.bbox_margin)
+
+
+def build_config(args) -> MapperConfig:
+    cfg = load_config(MapperConfig(), getattr(args, "config", None))
+    if getattr(args, "field", None):
+        cfg = dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, kind=args.field))
+    if getattr(args, "use_depth", False):
+        cfg = dataclasses.replace(cfg, use_depth=True)
+    dev = getattr(args, "device", None)
+    if dev and dev != "auto":
+        cfg = dataclasses.replace(cfg, device=dev)
+    if getattr(args, "poses", "gt") == "gt":
+        cfg = dataclasses.replace(cfg, optimize_init_poses=False)  # ground truth is trusted
+    cfg.validate()
+    return cfg
+
+
+def _heldout_psnr(mapper: Mapper, ds, used: list, n: int = 8) -> Optional[float]:
+    """Mean PSNR of up to ``n`` frames that are not keyframes, rendered at half resolution."""
+    import cv2
+
+    from fmapping.metrics import psnr
+
+    kf = set(mapper.keyframe_ids())
+    cand = [(fid, i) for fid, i in enumerate(used) if fid not in kf]
+    if not cand:
+        return None
+    sel = [cand[int(k)] for k in np.linspace(0, len(cand) - 1, min(n, len(cand)))]
+    cam = ds.camera.resized(max(1, ds.camera.width // 2), max(1, ds.camera.height // 2))
+    poses = mapper.frame_poses()
+    vals = []
+    for fid, i in sel:
+        img = cv2.resize(ds[i].rgb, (cam.width, cam.height), interpolation=cv2.INTER_AREA) / 255.0
+        out = mapper.render(poses[fid], cam)
+        vals.append(psnr(out["rgb"], img))
+    return float(np.mean(vals))
+
+
+def run_map(args) -> dict:
+    """Run the mapping job (see the module docstring); returns the stats dict with a ``summary``."""
+    import torch
+    from tqdm import tqdm
+
+    from fmapping.datasets import open_dataset
+    from fmapping.export import export_mesh, export_point_cloud
+    from fmapping.ply import write_ply
+    from fmapping.trajectory import write_tum_trajectory
+
+    t_start = time.perf_counter()
+    ds = open_dataset(args.data, camera=getattr(args, "camera", None), max_frames=getattr(args, "max_frames", None))
+    if len(ds) == 0:
+        raise ValueError(f"dataset {args.data} has no frames")
+    cfg = build_config(args)
+    poses = _pose_source(ds, getattr(args, "poses", "gt"))
+    aabb = _scene_aabb(ds, cfg, poses)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    mapper = Mapper(cfg, ds.camera, aabb=aabb)
+    used, skipped = [], 0
+    for i in tqdm(range(len(ds)), desc="mapping", unit="frame", disable=getattr(args, "quiet", False)):
+        if poses[i] is None:
+            skipped += 1
+            continue
+        f = ds[i]
+        mapper.add_frame(f.rgb, poses[i], f.timestamp, f.depth if cfg.use_depth else None)
+        used.append(i)
+    if not used:
+        raise ValueError(f"no frame of {args.data} has a pose")
+    mapper.finish()
+    t_map = time.perf_counter() - t_start
+
+    # ---- export
+    t0 = time.perf_counter()
+    all_poses = mapper.frame_poses()
+    kf = mapper.keyframe_ids() + [i for i in mapper.window_ids() if i not in mapper.keyframe_ids()]
+    kf_poses = {k: all_poses[k] for k in sorted(set(kf))}
+    pts, cols = export_point_cloud(mapper, kf_poses, ds.camera, near=cfg.near, far=cfg.far)
+    write_ply(out / "map.ply", pts, cols)
+
+    def render_fn(c2w, cam):
+        r = mapper.render(c2w, cam, samples=(48, 16))
+        return {"depth": r["depth"] / np.maximum(r["acc"], 1e-6), "acc": r["acc"]}
+
+    verts, faces, vcols = export_mesh(mapper.field, mapper.aabb, 160, kf_poses, ds.camera, render=render_fn,
+                                      near=cfg.near, far=cfg.far)
+    write_ply(out / "mesh.ply", verts, vcols, faces)
+    ts = mapper.frame_timestamps()
+    write_tum_trajectory(out / "traj.txt", np.array([ts[k] for k in all_poses]), np.stack(list(all_poses.values())))
+    t_export = time.perf_counter() - t0
+
+    mstats = mapper.stats()
+    stats = {
+        "config": to_dict(cfg),
+        "dataset": ds.describe(),
+        "poses": getattr(args, "poses", "gt"),
+        "frames_used": len(used),
+        "frames_without_pose": skipped,
+        "aabb": mapper.aabb.cpu().tolist(),
+        "mapper": mstats,
+        "export": {"points": int(len(pts)), "mesh_vertices": int(len(verts)), "mesh_faces": int(len(faces)),
+                   "seconds": t_export},
+        "seconds": {"mapping": t_map, "export": t_export, "total": time.perf_counter() - t_start},
+        "torch_threads": torch.get_num_threads(),
+    }
+    stats["psnr_heldout"] = _heldout_psnr(mapper, ds, used)
+    gt_cloud = ds.meta.get("gt_visible_cloud") if isinstance(ds.meta, dict) else None
+    if gt_cloud and Path(gt_cloud).is_file():
+        from fmapping.metrics import eval_recon_files
+
+        stats["recon"] = eval_recon_files(str(out / "map.ply"), gt_cloud, samples=200_000, threshold=0.05, seed=0)
+        if len(faces):
+            stats["recon_mesh"] = eval_recon_files(str(out / "mesh.ply"), gt_cloud, samples=200_000, threshold=0.05,
+                                                   seed=0)
+    summary = {
+        "out": str(out),
+        "frames": len(used),
+        "parameters": mstats["parameters"],
+        "window_seconds_min": mstats["window_seconds_min"],
+        "window_seconds_median": mstats["window_seconds_median"],
+        "init_seconds": mstats["init_seconds"],
+        "final_seconds": mstats["final_seconds"],
+        "total_seconds": stats["seconds"]["total"],
+        "points": int(len(pts)),
+        "psnr_heldout": stats["psnr_heldout"],
+    }
+    if "recon" in stats:
+        summary.update({k: stats["recon"][k] for k in ("accuracy_cm", "completion_cm", "completion_ratio")
+                        if k in stats["recon"]})
+    stats["summary"] = summary
+    (out / "stats.json").write_text(json.dumps(stats, indent=2, default=_json_default))
+    return stats
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    return str(o)
+
+
+def run_demo(args) -> int:
+    """Generate a synthetic scene in ``args.out/scene``, map it with GT poses, print the metrics."""
+    from fmapping.synthetic import generate_scene
+
+    out = Path(args.out)
+    scene_dir = out / "scene"
+    frames = int(getattr(args, "frames", 200))
+    seed = int(getattr(args, "seed", 0))
+    if not (scene_dir / "scene.json").is_file() or _scene_differs(scene_dir, seed, frames):
+        print(f"generating synthetic scene (seed {seed}, {frames} frames) in {scene_dir} ...", flush=True)
+        generate_scene(scene_dir, seed=seed, frames=frames, size=(320, 240))
+    margs = argparse.Namespace(data=str(scene_dir), poses="gt", out=str(out), config=getattr(args, "config", None),
+                               field=None, use_depth=False, device="auto", camera=None, max_frames=None)
+    stats = run_map(margs)
+    s = stats["summary"]
+    print(json.dumps(s, indent=2, default=_json_default))
+    if "recon" in stats:
+        r = stats["recon"]
+        print(f"reconstruction vs visible GT: accuracy {r['accuracy_cm']:.2f} cm, completion {r['completion_cm']:.2f} cm, "
+              f"completion ratio (5 cm) {r['completion_ratio']:.1f} %")
+    return 0
+
+
+def _scene_differs(scene_dir: Path, seed: int, frames: int) -> bool:
+    try:
+        meta = json.loads((scene_dir / "scene.json").read_text())
+    except (OSError, ValueError):
+        return True
+    return meta.get("seed") != seed or meta.get("frames") != frames

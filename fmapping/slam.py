@@ -1,0 +1,727 @@
+"""The full SLAM loop behind ``fmapping slam``: track every frame, map with the tracked poses.
+
+``run_slam(args)`` opens ``args.data`` and runs, frame by frame,
+
+    pose source -> Mapper.add_frame -> (after each mapping window) refresh of the tracker's reference
+
+and writes into ``args.out``: ``map.ply`` (coloured point cloud), ``mesh.ply``,
+``traj.txt`` (TUM format, every frame), ``stats.json`` (per-frame tracking ms,
+per-window mapping seconds, tracking-loss events, ATE against the GT when it exists).
+
+Pose sources (``args.poses``):
+
+* ``photometric`` (default): RGB only, front end :class:`~fmapping.tracking.mono.MonoFrontend`
+  (``slam.frontend: mono``): KLT tracks and a two-view bootstrap give the first poses
+  and sparse landmarks; every frame is then aligned photometrically
+  (:class:`~fmapping.tracking.frontend.DirectTracker`, the fast path) to the current
+  keyframe, whose depth comes from the landmarks (plus depth rendered from the map
+  once the map agrees with the landmarks); keyframes are refined by a windowed bundle
+  adjustment. The mapper receives the tracked poses (its init pose optimisation is
+  off unless ``slam.mapper_refines_init``). ``slam.frontend: map`` is the paper-style
+  alternative: constant-depth bootstrap guesses refined by the mapper's init, then
+  tracking against depth rendered from the map only (with init checks, retries and a
+  constant-depth fallback). With ``--use-depth`` the sensor depth replaces the
+  rendered depth for the references and supervises the mapper (RGB-D mode).
+  ``slam.tracking: render_compare`` swaps the direct alignment of the map front end
+  for render-and-compare through the field (slow; for comparison).
+* ``kiss-icp``: kiss-icp odometry on back-projected depth (needs depth).
+* ``gt`` / ``PATH.txt``: given poses (the loop is then the mapping job with tracking stats).
+
+Scale and world frame (monocular RGB has no metric scale), in this order:
+
+1. ground-truth poses in the dataset (``scale_anchor: auto|gt``): the world frame is
+   the GT frame of frame 0 and the scale is the GT distance between frame 0 and the
+   frame that completes the bootstrap (DIM-SLAM anchors its scale with the first GT
+   poses in the same spirit); with the map front end the same baseline is taken at
+   the end of the init window and the remaining factor after the mapper's init is
+   applied to everything written out (poses, map, mesh) as a similarity about frame 0.
+   Evaluate with SE(3) (or none).
+2. depth in the dataset (map front end, ``auto|depth``): the factor is the median
+   ratio of sensor depth to rendered depth at the last init frame.
+3. otherwise the median scene depth of the bootstrap is ``mono.unit_depth`` (mono)
+   or the assumed ``init_depth`` plane (map); evaluate with Sim(3).
+
+Init failure (map front end): after the init stage the first init frames are aligned
+back to the last one with the rendered depth; if the inlier ratio is low or the map
+renders too few pixels, init is retried with ``init_retry_frames`` more frames (up to
+``init_retries`` times), then tracking falls back to constant-depth references until
+the map renders depth (reported in ``notes``). A failed monocular bootstrap falls back
+to the map front end. Tracking loss is reported per frame in ``tracking_loss_events``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from fmapping.config import load_config, to_dict
+from fmapping.mapper import Mapper, MapperConfig
+from fmapping.tracking.frontend import DirectTracker, TrackerConfig
+from fmapping.tracking.mapview import MapView, MapViewConfig
+from fmapping.tracking.mono import MonoConfig, MonoFrontend
+from fmapping.tracking.render_compare import RenderCompareConfig
+from fmapping.tracking.sources import KissIcpConfig
+
+log = logging.getLogger("fmapping.slam")
+
+
+@dataclass
+class SlamConfig:
+    mapper: MapperConfig = field(default_factory=MapperConfig)
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    map_view: MapViewConfig = field(default_factory=MapViewConfig)
+    render_compare: RenderCompareConfig = field(default_factory=RenderCompareConfig)
+    kiss_icp: KissIcpConfig = field(default_factory=KissIcpConfig)
+    mono: MonoConfig = field(default_factory=MonoConfig)
+    frontend: str = "mono"  # RGB-only front end: "mono" (two-view bootstrap + BA, sparse depth; map depth added
+    #                         when it agrees) | "map" (mapper init from constant-depth guesses, rendered depth only)
+    mapper_refines_init: bool = False  # let the mapper's init re-estimate the front end's init poses
+    map_depth_check: float = 0.1  # map depth is used once its median relative gap to the landmarks is below this
+    tracking: str = "direct"  # photometric tracking path: "direct" | "render_compare"
+    init_depth: float = 2.0  # assumed depth of the constant-depth plane of the bootstrap (units if no anchor)
+    scale_anchor: str = "auto"  # "auto" | "gt" | "depth" | "none"
+    anchor_world_gt: bool = True  # put frame 0 at its GT pose when GT exists
+    use_scene_bbox: bool = True  # take the synthetic room bounds from scene.json when in the GT frame
+    init_min_inlier_ratio: float = 0.6
+    init_min_depth_fraction: float = 0.3  # fraction of reference pixels the map must render
+    init_retries: int = 2
+    init_retry_frames: int = 10
+    refresh_every_window: bool = True  # re-render the reference depth after each mapping window
+    feed_lost_frames: bool = False  # give the mapper frames whose tracking was lost (at the predicted pose)
+
+    def validate(self) -> None:
+        if self.frontend not in ("mono", "map"):
+            raise ValueError(f"slam.frontend must be 'mono' or 'map', got {self.frontend!r}")
+        if self.tracking not in ("direct", "render_compare"):
+            raise ValueError(f"slam.tracking must be 'direct' or 'render_compare', got {self.tracking!r}")
+        if self.scale_anchor not in ("auto", "gt", "depth", "none"):
+            raise ValueError(f"slam.scale_anchor must be auto|gt|depth|none, got {self.scale_anchor!r}")
+        if not self.init_depth > 0:
+            raise ValueError(f"slam.init_depth must be > 0, got {self.init_depth}")
+        self.mapper.validate()
+
+
+def build_slam_config(args) -> SlamConfig:
+    cfg = load_config(SlamConfig(), getattr(args, "config", None))
+    m = cfg.mapper
+    if getattr(args, "use_depth", False):
+        m = dataclasses.replace(m, use_depth=True)
+    dev = getattr(args, "device", None)
+    if dev and dev != "auto":
+        m = dataclasses.replace(m, device=dev)
+    poses = getattr(args, "poses", "photometric")
+    if poses not in ("photometric",) or m.use_depth or (cfg.frontend == "mono" and not cfg.mapper_refines_init):
+        # external poses are trusted; with sensor depth the bootstrap is RGB-D odometry, already metric
+        m = dataclasses.replace(m, optimize_init_poses=False)
+    cfg = dataclasses.replace(cfg, mapper=m)
+    cfg.validate()
+    return cfg
+
+
+# ----------------------------------------------------------------------------- helpers
+def constant_depth(camera, depth: float) -> np.ndarray:
+    return np.full((camera.height, camera.width), float(depth), np.float32)
+
+
+def bootstrap_poses(rgbs: list, camera, c2w0: np.ndarray, tcfg: TrackerConfig, depth: float,
+                    depths: Optional[list] = None) -> tuple[list, list]:
+    """Initial guesses for the init window: direct alignment to a constant-depth plane (or sensor depth).
+
+    Returns (poses, per-frame TrackResult dicts). New references (same constant depth)
+    are taken when the tracker asks for a keyframe.
+    """
+    tr = DirectTracker(camera, tcfg)
+    d0 = depths[0] if depths is not None and depths[0] is not None else constant_depth(camera, depth)
+    tr.set_reference(rgbs[0], d0, c2w0, 0)
+    tr.observe(c2w0)
+    poses, info = [np.asarray(c2w0, np.float64)], [{}]
+    for k in range(1, len(rgbs)):
+        r = tr.track(rgbs[k])
+        poses.append(r.c2w)
+        info.append(r.to_dict())
+        if r.need_keyframe and not r.lost:
+            dk = depths[k] if depths is not None and depths[k] is not None else constant_depth(camera, depth)
+            try:
+                tr.set_reference(rgbs[k], dk, r.c2w, k)
+            except ValueError:
+                pass
+    return poses, info
+
+
+def scale_about(c2w: np.ndarray, center: np.ndarray, s: float) -> np.ndarray:
+    out = np.array(c2w, np.float64)
+    out[:3, 3] = center + s * (out[:3, 3] - center)
+    return out
+
+
+def _ate_block(est: np.ndarray, gt: list) -> Optional[dict]:
+    from fmapping.metrics import ate
+
+    ok = [i for i, g in enumerate(gt) if g is not None]
+    if len(ok) < 3:
+        return None
+    e = np.stack([est[i] for i in ok])
+    g = np.stack([gt[i] for i in ok])
+    res = {}
+    for a in ("se3", "sim3", "none"):
+        try:
+            r = ate(e, g, a)
+            res[a] = {k: r[k] for k in ("rmse_m", "mean_m", "max_m", "rot_err_mean_deg", "scale")}
+        except ValueError as err:
+            res[a] = {"error": str(err)}
+    return res
+
+
+# ----------------------------------------------------------------------------- the loop
+class SlamRun:
+    """State of one SLAM run over a dataset (see the module docstring)."""
+
+    def __init__(self, ds, cfg: SlamConfig, poses: str = "photometric", out: Optional[Path] = None,
+                 progress: bool = True):
+        self.ds = ds
+        self.cfg = cfg
+        self.camera = ds.camera
+        self.poses_mode = poses
+        self.out = out
+        self.progress = progress
+        self.has_gt = any(p is not None for p in ds.gt_poses)
+        self.gt0 = ds.gt_poses[0] if self.has_gt and ds.gt_poses[0] is not None else None
+        self.c2w0 = self.gt0 if (self.gt0 is not None and cfg.anchor_world_gt) else np.eye(4)
+        self.use_depth = bool(cfg.mapper.use_depth and ds.has_depth)
+        anchor = cfg.scale_anchor
+        if anchor == "auto":
+            anchor = "gt" if self.gt0 is not None else ("depth" if ds.has_depth else "none")
+        if anchor == "gt" and self.gt0 is None:
+            raise ValueError("slam.scale_anchor 'gt' needs ground-truth poses in the dataset")
+        if anchor == "depth" and not ds.has_depth:
+            raise ValueError("slam.scale_anchor 'depth' needs depth images in the dataset")
+        if self.use_depth:
+            anchor = "none"  # metric already
+        self.anchor = anchor if poses == "photometric" else "none"
+        self.scale = 1.0  # output = scale_about(internal, c2w0 centre, scale)
+        self.track_ms: dict[int, float] = {}
+        self.track_info: dict[int, dict] = {}
+        self.loss_events: list[dict] = []
+        self.window_stats: list[dict] = []
+        self.est: dict[int, np.ndarray] = {}  # dataset index -> internal c2w
+        self.fid_of: dict[int, int] = {}  # dataset index -> mapper frame id
+        self.notes: list[str] = []
+        self.mapper: Optional[Mapper] = None
+        self.degraded = False  # True while the map cannot give depth: references use the constant-depth plane
+        self.boot_scale = 1.0
+        self.init_degraded = False
+        self.map_checks: list = []
+        self.frontend: Optional[MonoFrontend] = None
+        self.tracker: Optional[DirectTracker] = None
+        self.view: Optional[MapView] = None
+        self._rc = None
+
+    # -------------------------------------------------------------- set-up
+    def _aabb(self):
+        m = self.cfg.mapper
+        if m.bbox is not None or not self.cfg.use_scene_bbox:
+            return None
+        scene = self.ds.meta.get("scene") if isinstance(self.ds.meta, dict) else None
+        in_gt_frame = self.poses_mode != "photometric" or (self.gt0 is not None and self.cfg.anchor_world_gt
+                                                           and self.anchor in ("gt",))
+        if in_gt_frame and isinstance(scene, dict) and isinstance(scene.get("bbox"), dict):
+            b = scene["bbox"]
+            return np.stack([np.asarray(b["min"], np.float64) - m.bbox_margin,
+                             np.asarray(b["max"], np.float64) + m.bbox_margin])
+        return None
+
+    def _new_mapper(self, init_frames: int) -> Mapper:
+        mcfg = dataclasses.replace(self.cfg.mapper, init_frames=init_frames)
+        return Mapper(mcfg, self.camera, aabb=self._aabb())
+
+    # -------------------------------------------------------------- external pose sources
+    def _external_poses(self) -> list:
+        ds = self.ds
+        if self.poses_mode == "gt":
+            if not self.has_gt:
+                raise ValueError(f"--poses gt: dataset {ds.root} has no ground-truth poses")
+            return list(ds.gt_poses)
+        if self.poses_mode == "kiss-icp":
+            if not ds.has_depth:
+                raise ValueError(f"--poses kiss-icp needs depth images; dataset {ds.root} has none")
+            from fmapping.tracking.sources import KissIcpOdometry
+
+            odo = KissIcpOdometry(self.camera, self.cfg.kiss_icp, self.c2w0)
+            out = []
+            for i in self._iter(range(len(ds)), "kiss-icp"):
+                f = ds[i]
+                if f.depth is None:
+                    raise ValueError(f"frame {i} of {ds.root} has no depth image")
+                t0 = time.perf_counter()
+                out.append(odo.register(f.depth))
+                self.track_ms[i] = (time.perf_counter() - t0) * 1000
+            return out
+        from fmapping.tracking.sources import ensure_path, poses_from_file
+
+        return poses_from_file(ensure_path(self.poses_mode), np.asarray(ds.timestamps))
+
+    def _iter(self, it, desc: str):
+        if not self.progress:
+            return it
+        from tqdm import tqdm
+
+        return tqdm(it, desc=desc, unit="frame")
+
+    def run_external(self) -> None:
+        poses = self._external_poses()
+        self.mapper = self._new_mapper(self.cfg.mapper.init_frames)
+        for i in self._iter(range(len(self.ds)), "mapping"):
+            if poses[i] is None:
+                continue
+            f = self.ds[i]
+            self.est[i] = np.asarray(poses[i], np.float64)
+            self._add_to_mapper(i, f.rgb, poses[i], f.timestamp, f.depth)
+
+    # -------------------------------------------------------------- photometric
+    def _add_to_mapper(self, i: int, rgb, c2w, ts, depth) -> Optional[dict]:
+        fid = len(self.fid_of)
+        st = self.mapper.add_frame(rgb, c2w, ts, depth if self.use_depth else None)
+        self.fid_of[i] = fid
+        if st is not None:
+            d = st.to_dict()
+            d["after_frame"] = i
+            self.window_stats.append(d)
+            return d
+        return None
+
+    def _ref_depth(self, i: int, c2w: np.ndarray, sensor_depth):
+        if self.use_depth and sensor_depth is not None:
+            return sensor_depth
+        if self.degraded:
+            return constant_depth(self.camera, self.cfg.init_depth * self.boot_scale)
+        return self.view.depth_fn(c2w)
+
+    def _try_leave_degraded(self, i: int) -> None:
+        """After a mapping window in degraded mode: switch to map depth once the map renders it."""
+        ref = self.tracker.reference
+        rgb = self._ref_rgb.get(ref.frame_index)
+        if rgb is None:
+            return
+        try:
+            probe = DirectTracker(self.camera, self.cfg.tracker)
+            r = probe.set_reference(rgb, self.view.depth_fn(ref.c2w), ref.c2w, ref.frame_index)
+        except ValueError:
+            return
+        if len(r.points) >= self.cfg.init_min_depth_fraction * self.cfg.tracker.num_points:
+            self.degraded = False
+            self.notes.append(f"frame {i}: the map renders depth; tracking switches from the constant-depth "
+                              "fallback to map depth")
+            self.tracker.set_reference(rgb, self.view.depth_fn(ref.c2w), ref.c2w, ref.frame_index)
+
+    def _init_stage(self, n_total: int) -> int:
+        """Bootstrap + mapper init, with retries. Returns the number of frames consumed."""
+        cfg = self.cfg
+        n_init = min(cfg.mapper.init_frames, n_total)
+        attempt = 0
+        while True:
+            frames = [self.ds[i] for i in range(n_init)]
+            rgbs = [f.rgb for f in frames]
+            sensor = [f.depth for f in frames] if self.use_depth else None
+            t0 = time.perf_counter()
+            guesses, info = bootstrap_poses(rgbs, self.camera, self.c2w0, cfg.tracker, cfg.init_depth, sensor)
+            boot_ms = (time.perf_counter() - t0) * 1000 / max(1, n_init - 1)
+            pre_scale = 1.0
+            if self.anchor == "gt" and n_init > 1:
+                g = self.ds.gt_poses
+                b_gt = np.linalg.norm(g[n_init - 1][:3, 3] - g[0][:3, 3]) if g[n_init - 1] is not None else 0.0
+                b_est = np.linalg.norm(guesses[-1][:3, 3] - guesses[0][:3, 3])
+                if b_gt > 1e-4 and b_est > 1e-6:
+                    pre_scale = float(b_gt / b_est)
+                    guesses = [scale_about(p, self.c2w0[:3, 3], pre_scale) for p in guesses]
+            self.mapper = self._new_mapper(n_init)
+            self.fid_of = {}
+            self.window_stats = [w for w in self.window_stats if w.get("kind") != "init"]
+            for i, f in enumerate(frames):
+                self.track_ms[i] = boot_ms if i else 0.0
+                self._add_to_mapper(i, f.rgb, guesses[i] if i else self.c2w0, f.timestamp, f.depth)
+            if not self.mapper.initialized:
+                self.mapper.finish()
+            refined = self.mapper.frame_poses()
+            for i in range(n_init):
+                self.est[i] = refined[self.fid_of[i]]
+            self.view = MapView.from_mapper(self.mapper, cfg.map_view)
+            self.boot_scale = pre_scale
+            ok, why = self._check_init(frames)
+            self.init_report = {"frames": n_init, "attempt": attempt, "ok": ok, "why": why,
+                                "bootstrap_scale": pre_scale, "bootstrap_ms_per_frame": boot_ms,
+                                "bootstrap_lost": int(sum(bool(x.get("lost")) for x in info))}
+            if ok or attempt >= cfg.init_retries or n_init + cfg.init_retry_frames > n_total:
+                if not ok:
+                    # never continue from a map that renders garbage: keep the bootstrap poses and
+                    # track against constant-depth references until the map renders depth
+                    self.degraded = True
+                    for i in range(n_init):
+                        self.est[i] = guesses[i]
+                    self.notes.append(f"init failed after {attempt} retries ({why}); bootstrap poses kept, "
+                                      "constant-depth tracking until the map renders depth")
+                    self.init_report["degraded"] = True
+                    self.init_degraded = True
+                break
+            attempt += 1
+            n_init = min(n_total, n_init + cfg.init_retry_frames)
+            log.warning("init failed (%s); retrying with %d frames", why, n_init)
+        # tracker on the refined map
+        self.tracker = DirectTracker(self.camera, cfg.tracker)
+        last = n_init - 1
+        self.tracker.set_reference(frames[last].rgb, self._ref_depth(last, self.est[last], frames[last].depth),
+                                   self.est[last], last)
+        self.tracker.reset_motion([self.est[max(0, last - 1)], self.est[last]])
+        self._ref_rgb = {last: frames[last].rgb}
+        self._scale_after_init(frames)
+        return n_init
+
+    def _check_init(self, frames) -> tuple[bool, str]:
+        """Align the first init frame to the last one through the rendered depth."""
+        if self.use_depth:
+            return True, ""
+        last = len(frames) - 1
+        tr = DirectTracker(self.camera, self.cfg.tracker)
+        try:
+            ref = tr.set_reference(frames[last].rgb, self.view.depth_fn(self.est[last]), self.est[last], last)
+        except ValueError as e:
+            return False, f"map renders no depth at the last init frame ({e})"
+        n_sel = self.cfg.tracker.num_points
+        frac = len(ref.points) / max(1, n_sel)
+        if frac < self.cfg.init_min_depth_fraction:
+            return False, f"map renders depth at only {frac:.0%} of the reference pixels"
+        worst = 1.0
+        for k in (0, last // 2):
+            r = tr.track(frames[k].rgb, c2w_guess=self.est[k])
+            worst = min(worst, r.inlier_ratio if not r.lost else 0.0)
+        if worst < self.cfg.init_min_inlier_ratio:
+            return False, f"init frames re-align with inlier ratio {worst:.2f}"
+        return True, ""
+
+    def _scale_after_init(self, frames) -> None:
+        n = len(frames)
+        if self.anchor == "gt":
+            g = self.ds.gt_poses
+            b_gt = np.linalg.norm(g[n - 1][:3, 3] - g[0][:3, 3]) if g[n - 1] is not None else 0.0
+            b_est = np.linalg.norm(self.est[n - 1][:3, 3] - self.est[0][:3, 3])
+            if b_gt > 1e-4 and b_est > 1e-6:
+                self.scale = float(b_gt / b_est)
+        elif self.anchor == "depth":
+            f = frames[-1]
+            if f.depth is not None:
+                uv = np.stack(np.meshgrid(np.arange(0, self.camera.width, 8), np.arange(0, self.camera.height, 8)),
+                              -1).reshape(-1, 2).astype(np.float64)
+                rd = self.view.depth_at(self.est[n - 1], uv)
+                sd = f.depth[uv[:, 1].astype(int), uv[:, 0].astype(int)].astype(np.float64)
+                ok = np.isfinite(rd) & (rd > 0) & (sd > 0)
+                if ok.sum() > 20:
+                    self.scale = float(np.median(sd[ok] / rd[ok]))
+        self.init_report["output_scale"] = self.scale
+
+    def _render_compare(self):
+        if self._rc is None:
+            from fmapping.tracking.render_compare import RenderCompareTracker
+
+            self._rc = RenderCompareTracker(self.view, self.cfg.render_compare)
+        return self._rc
+
+    # -------------------------------------------------------------- monocular front end
+    def _anchor_fn(self):
+        if self.anchor != "gt":
+            return None
+        g = self.ds.gt_poses
+
+        def base(k: int):
+            return None if g[k] is None else float(np.linalg.norm(g[k][:3, 3] - g[0][:3, 3]))
+        return base
+
+    def _map_agrees(self, fe: MonoFrontend, i: int) -> bool:
+        """Does the map's rendered depth agree with the front end's landmarks at keyframe ``i``?"""
+        ref = fe.tracker.reference
+        if ref is None or len(ref.points) < 20 or self.view is None:
+            return False
+        n = min(len(ref.points), 300)
+        uv = ref.uv[:n].astype(np.float64)
+        d = self.view.depth_at(ref.c2w, uv)
+        z = ref.points[:n, 2]
+        ok = np.isfinite(d)
+        if ok.mean() < 0.5:
+            return False
+        gap = float(np.median(np.abs(d[ok] - z[ok]) / z[ok]))
+        self.map_checks.append({"frame": i, "gap": gap, "rendered": float(ok.mean())})
+        return gap < self.cfg.map_depth_check
+
+    def run_mono(self) -> None:
+        cfg = self.cfg
+        n = len(self.ds)
+        fe = MonoFrontend(self.camera, cfg.tracker, cfg.mono)
+        self.frontend = fe
+        anchor = self._anchor_fn()
+        buf = []
+        i = 0
+        t_boot = time.perf_counter()
+        while i < n and not fe.initialized:
+            f = self.ds[i]
+            buf.append(f)
+            out = fe.bootstrap(i, f.rgb, self.c2w0, anchor)
+            i += 1
+            if fe.failed:
+                break
+        if not fe.initialized:
+            self.notes.append(f"monocular bootstrap failed after {len(buf)} frames; falling back to the "
+                              "map front end (constant-depth guesses)")
+            self.frontend = None
+            self.run_photometric_map()
+            return
+        boot_ms = (time.perf_counter() - t_boot) * 1000 / max(1, len(buf) - 1)
+        self.init_report = {"frontend": "mono", **fe.init_info, "bootstrap_ms_per_frame": boot_ms}
+        if fe.init_info.get("scale_from") == "unit_depth":
+            self.anchor = "none"
+        self.mapper = self._new_mapper(cfg.mapper.init_frames)
+        for f in buf:
+            self.est[f.index] = out[f.index]
+            self.track_ms[f.index] = boot_ms if f.index else 0.0
+            self._after_window(self._add_to_mapper(f.index, f.rgb, out[f.index], f.timestamp, f.depth))
+        map_ok = False
+        for i in self._iter(range(i, n), "slam"):
+            f = self.ds[i]
+            kf_before = fe.keyframe_index
+            extra = self.view.depth_fn if (map_ok and self.view is not None) else None
+            r = fe.track(i, f.rgb, extra_depth=extra)
+            info = r.to_dict()
+            self.track_ms[i] = info["ms"]
+            self.track_info[i] = info
+            self.est[i] = r.c2w
+            if r.lost:
+                self.loss_events.append({"frame": i, "reason": r.reason, "inlier_ratio": r.inlier_ratio,
+                                         "reference": r.reference})
+            if not r.lost or cfg.feed_lost_frames:
+                self._after_window(self._add_to_mapper(i, f.rgb, r.c2w, f.timestamp, f.depth))
+            if fe.keyframe_index != kf_before and self.view is not None and not map_ok:
+                map_ok = self._map_agrees(fe, i)
+                if map_ok:
+                    self.notes.append(f"frame {i}: map depth agrees with the landmarks; references add it")
+        # BA-refined poses of every tracked frame
+        for k, p in fe.poses().items():
+            self.est[k] = p
+        self.init_report["ba"] = {"runs": len(fe.ba_stats),
+                                  "ms_median": float(np.median([b["ms"] for b in fe.ba_stats])) if fe.ba_stats else None,
+                                  "rms_after_px_median": float(np.median([b["rms_after_px"] for b in fe.ba_stats]))
+                                  if fe.ba_stats else None}
+
+    def _after_window(self, win) -> None:
+        if win is not None and self.mapper is not None and self.mapper.initialized:
+            self.view = MapView.from_mapper(self.mapper, self.cfg.map_view)
+
+    def run_photometric(self) -> None:
+        if self.cfg.frontend == "mono" and not self.use_depth:
+            self.run_mono()
+        else:
+            self.run_photometric_map()
+
+    def run_photometric_map(self) -> None:
+        cfg = self.cfg
+        n = len(self.ds)
+        start = self._init_stage(n)
+        for i in self._iter(range(start, n), "slam"):
+            f = self.ds[i]
+            if cfg.tracking == "render_compare":
+                pred = self.tracker.predict()
+                res = self._render_compare().track(f.rgb, pred)
+                c2w, lost = res.c2w, False
+                self.tracker.observe(c2w)
+                info = {"ms": res.ms, "loss": res.loss, "lost": False}
+                need_kf = False
+            else:
+                r = self.tracker.track(f.rgb)
+                c2w, lost, need_kf = r.c2w, r.lost, r.need_keyframe
+                info = r.to_dict()
+            self.track_ms[i] = info["ms"]
+            self.track_info[i] = info
+            self.est[i] = c2w
+            if lost:
+                self.loss_events.append({"frame": i, "reason": info.get("reason", ""),
+                                         "inlier_ratio": info.get("inlier_ratio"), "reference": info.get("reference")})
+            win = None
+            if not lost or cfg.feed_lost_frames:
+                win = self._add_to_mapper(i, f.rgb, c2w, f.timestamp, f.depth)
+            if cfg.tracking != "direct":
+                continue
+            if need_kf and not lost:
+                try:
+                    self.tracker.set_reference(f.rgb, self._ref_depth(i, c2w, f.depth), c2w, i)
+                    self._ref_rgb = {i: f.rgb}
+                except ValueError as e:
+                    self.notes.append(f"frame {i}: no new reference ({e})")
+            elif win is not None and self.degraded:
+                self._try_leave_degraded(i)
+            elif win is not None and cfg.refresh_every_window and not self.use_depth:
+                ref = self.tracker.reference
+                rgb = self._ref_rgb.get(ref.frame_index)
+                if rgb is not None:
+                    try:
+                        self.tracker.set_reference(rgb, self._ref_depth(ref.frame_index, ref.c2w, None), ref.c2w,
+                                                   ref.frame_index)
+                    except ValueError as e:
+                        self.notes.append(f"frame {i}: reference refresh failed ({e})")
+
+    # -------------------------------------------------------------- finishing
+    def finish(self) -> None:
+        if self.mapper is None:
+            return
+        st = self.mapper.finish()
+        if st is not None:
+            self.window_stats.append(st.to_dict())
+        # the mapper may have refined poses (init frames, or windows if it optimises poses)
+        if self.init_degraded or (self.frontend is not None and not self.cfg.mapper_refines_init):
+            return  # init poses: the mapper's refinement failed its check, or it did not refine
+        refined = self.mapper.frame_poses()
+        for i, fid in self.fid_of.items():
+            if fid in refined:
+                self.est[i] = refined[fid]
+
+    def output_poses(self) -> np.ndarray:
+        c = self.c2w0[:3, 3]
+        n = len(self.ds)
+        out = []
+        last = None
+        for i in range(n):
+            p = self.est.get(i, last)
+            if p is None:
+                p = self.c2w0
+            last = p
+            out.append(scale_about(p, c, self.scale))
+        return np.stack(out)
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    return str(o)
+
+
+def _export(run: SlamRun, out: Path) -> dict:
+    """map.ply and mesh.ply in the output frame (scaled about frame 0 by the anchor)."""
+    from fmapping.export import export_mesh, export_point_cloud
+    from fmapping.ply import write_ply
+
+    m = run.mapper
+    cfg = run.cfg.mapper
+    t0 = time.perf_counter()
+    poses = m.frame_poses()
+    kf = sorted(set(m.keyframe_ids()) | set(m.window_ids()))
+    kf_poses = {k: poses[k] for k in kf if k in poses}
+    pts, cols = export_point_cloud(m, kf_poses, run.camera, near=cfg.near, far=cfg.far)
+
+    def render_fn(c2w, cam):
+        r = m.render(c2w, cam, samples=(48, 16))
+        return {"depth": r["depth"] / np.maximum(r["acc"], 1e-6), "acc": r["acc"]}
+
+    verts, faces, vcols = export_mesh(m.field, m.aabb, 160, kf_poses, run.camera, render=render_fn,
+                                      near=cfg.near, far=cfg.far)
+    c, s = run.c2w0[:3, 3], run.scale
+    if len(pts):
+        pts = c + s * (np.asarray(pts) - c)
+    if len(verts):
+        verts = c + s * (np.asarray(verts) - c)
+    write_ply(out / "map.ply", pts, cols)
+    write_ply(out / "mesh.ply", verts, vcols, faces)
+    return {"points": int(len(pts)), "mesh_vertices": int(len(verts)), "mesh_faces": int(len(faces)),
+            "seconds": time.perf_counter() - t0}
+
+
+def run_slam(args) -> dict:
+    """Run the SLAM loop (see the module docstring); returns the stats dict with a ``summary``."""
+    import torch
+
+    from fmapping.datasets import open_dataset
+    from fmapping.trajectory import write_tum_trajectory
+
+    t_start = time.perf_counter()
+    ds = open_dataset(args.data, camera=getattr(args, "camera", None), max_frames=getattr(args, "max_frames", None))
+    if len(ds) == 0:
+        raise ValueError(f"dataset {args.data} has no frames")
+    cfg = build_slam_config(args)
+    poses_mode = getattr(args, "poses", "photometric") or "photometric"
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    run = SlamRun(ds, cfg, poses_mode, out, progress=not getattr(args, "quiet", False))
+    if poses_mode == "photometric":
+        run.run_photometric()
+    else:
+        run.run_external()
+    run.finish()
+    t_loop = time.perf_counter() - t_start
+    est = run.output_poses()
+    write_tum_trajectory(out / "traj.txt", np.asarray(ds.timestamps, np.float64), est)
+    export = _export(run, out) if getattr(args, "export", True) else None
+
+    ms = np.array([run.track_ms[i] for i in sorted(run.track_ms)], np.float64)
+    track_ms_after_init = np.array([run.track_info[i]["ms"] for i in sorted(run.track_info)], np.float64)
+    wins = [w for w in run.window_stats if w.get("kind") == "window"]
+    mstats = run.mapper.stats() if run.mapper is not None else {}
+    stats = {
+        "config": to_dict(cfg),
+        "dataset": ds.describe(),
+        "poses": poses_mode,
+        "scale_anchor": run.anchor,
+        "output_scale": run.scale,
+        "init": getattr(run, "init_report", None),
+        "frames": len(ds),
+        "frames_mapped": len(run.fid_of),
+        "tracking_ms": {str(i): run.track_ms[i] for i in sorted(run.track_ms)},
+        "tracking": {str(i): run.track_info[i] for i in sorted(run.track_info)},
+        "tracking_loss_events": run.loss_events,
+        "windows": run.window_stats,
+        "mapper": mstats,
+        "export": export,
+        "notes": run.notes,
+        "map_depth_checks": run.map_checks,
+        "seconds": {"loop": t_loop, "total": time.perf_counter() - t_start},
+        "torch_threads": torch.get_num_threads(),
+    }
+    ate_res = _ate_block(est, list(ds.gt_poses)) if run.has_gt else None
+    stats["ate"] = ate_res
+    gt_cloud = ds.meta.get("gt_visible_cloud") if isinstance(ds.meta, dict) else None
+    if export is not None and gt_cloud and Path(gt_cloud).is_file() and export["points"] > 0:
+        from fmapping.metrics import eval_recon_files
+
+        stats["recon"] = eval_recon_files(str(out / "map.ply"), gt_cloud, samples=200_000, threshold=0.05, seed=0)
+    summary = {
+        "out": str(out),
+        "poses": poses_mode,
+        "frames": len(ds),
+        "frames_mapped": len(run.fid_of),
+        "tracking_loss_events": len(run.loss_events),
+        "tracking_ms_median": float(np.median(track_ms_after_init)) if len(track_ms_after_init) else
+        (float(np.median(ms)) if len(ms) else None),
+        "tracking_ms_min": float(np.min(track_ms_after_init)) if len(track_ms_after_init) else None,
+        "window_seconds_median": float(np.median([w["seconds"] for w in wins])) if wins else None,
+        "init_seconds": mstats.get("init_seconds"),
+        "total_seconds": stats["seconds"]["total"],
+        "scale_anchor": run.anchor,
+        "output_scale": run.scale,
+        "init_ok": bool(getattr(run, "init_report", {}).get("ok", True)),
+        "init_frames": getattr(run, "init_report", {}).get("frames"),
+        "degraded_at_end": run.degraded,
+    }
+    if ate_res:
+        for a in ("se3", "sim3", "none"):
+            if "rmse_m" in ate_res.get(a, {}):
+                summary[f"ate_{a}_rmse_m"] = ate_res[a]["rmse_m"]
+                summary[f"ate_{a}_rot_deg"] = ate_res[a]["rot_err_mean_deg"]
+    if "recon" in stats:
+        summary.update({k: stats["recon"][k] for k in ("accuracy_cm", "completion_cm", "completion_ratio")
+                        if k in stats["recon"]})
+    stats["summary"] = summary
+    (out / "stats.json").write_text(json.dumps(stats, indent=2, default=_json_default))
+    return stats

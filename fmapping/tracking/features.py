@@ -1,0 +1,195 @@
+"""Sparse geometry for monocular tracking: KLT tracks, two-view initialisation, triangulation.
+
+RGB-only tracking needs depth at the reference keyframe before the map can render
+any. This module supplies it with standard two-view geometry (OpenCV):
+
+* :func:`detect_corners` (Shi-Tomasi) and :func:`klt_track` (pyramidal Lucas-Kanade
+  with a forward-backward check) follow points from a keyframe to later frames;
+* :func:`two_view_init` recovers the relative pose of two views from the tracks
+  (essential matrix, RANSAC) up to scale and triangulates the inliers;
+* :func:`triangulate` gives world points of tracks between two views with known
+  poses, rejecting low parallax and large reprojection errors.
+
+Conventions: pixels (u, v) with integer centres, poses camera-to-world 4x4
+(OpenCV axes), see :mod:`fmapping.geometry`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from fmapping.camera import PinholeCamera
+
+
+@dataclass
+class KltConfig:
+    max_corners: int = 800
+    quality: float = 0.005  # Shi-Tomasi quality level
+    min_distance: int = 7  # pixels between corners
+    window: int = 21  # LK window (pixels)
+    levels: int = 4  # LK pyramid levels
+    fb_threshold: float = 1.0  # forward-backward error (pixels) above which a track is dropped
+    border: int = 8
+
+
+def to_u8(rgb: np.ndarray) -> np.ndarray:
+    img = np.asarray(rgb)
+    if img.ndim == 3:
+        img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
+    if img.dtype != np.uint8:
+        img = np.clip(img * (255.0 if img.max() <= 1.0 else 1.0), 0, 255).astype(np.uint8)
+    return np.ascontiguousarray(img)
+
+
+def detect_corners(gray: np.ndarray, cfg: KltConfig, existing: Optional[np.ndarray] = None) -> np.ndarray:
+    """Shi-Tomasi corners (N, 2) float32, away from the border, from black fill (undistortion) and from
+    ``existing`` points."""
+    from fmapping.tracking.direct import image_valid_mask
+
+    h, w = gray.shape
+    mask = np.zeros((h, w), np.uint8)
+    b = cfg.border
+    mask[b:h - b, b:w - b] = 255
+    fill = image_valid_mask(gray, erode=cfg.border)
+    if fill is not None:
+        mask[~fill] = 0
+    n = cfg.max_corners
+    if existing is not None and len(existing):
+        for u, v in np.round(existing).astype(int):
+            cv2.circle(mask, (int(u), int(v)), cfg.min_distance, 0, -1)
+        n = max(0, cfg.max_corners - len(existing))
+    if n == 0:
+        return np.zeros((0, 2), np.float32)
+    pts = cv2.goodFeaturesToTrack(gray, n, cfg.quality, cfg.min_distance, mask=mask)
+    return np.zeros((0, 2), np.float32) if pts is None else pts.reshape(-1, 2).astype(np.float32)
+
+
+def klt_track(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: KltConfig,
+              guess: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+    """Track ``pts0`` (N, 2) from ``img0`` to ``img1`` (uint8 grey). Returns (pts1, ok)."""
+    if len(pts0) == 0:
+        return np.zeros((0, 2), np.float32), np.zeros(0, bool)
+    p0 = np.ascontiguousarray(pts0, np.float32).reshape(-1, 1, 2)
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+    kw = dict(winSize=(cfg.window, cfg.window), maxLevel=cfg.levels - 1, criteria=crit)
+    if guess is not None:
+        p1 = np.ascontiguousarray(guess, np.float32).reshape(-1, 1, 2).copy()
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(img0, img1, p0, p1, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **kw)
+    else:
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(img0, img1, p0, None, **kw)
+    pb, stb, _ = cv2.calcOpticalFlowPyrLK(img1, img0, p1, None, **kw)
+    fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
+    p1 = p1.reshape(-1, 2)
+    h, w = img1.shape[:2]
+    ok = (st.reshape(-1) == 1) & (stb.reshape(-1) == 1) & (fb < cfg.fb_threshold)
+    ok &= (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
+    return p1, ok
+
+
+def _rays(camera: PinholeCamera, uv: np.ndarray) -> np.ndarray:
+    return np.stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy, np.ones(len(uv))], -1)
+
+
+def triangulate(camera: PinholeCamera, c2w_a: np.ndarray, c2w_b: np.ndarray, uv_a: np.ndarray, uv_b: np.ndarray,
+                min_parallax_deg: float = 1.0, max_reproj_px: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+    """World points (N, 3) from pixel pairs in two views with known poses, and a validity mask.
+
+    Linear (DLT) triangulation; a point is valid when it lies in front of both
+    cameras, its rays meet at an angle of at least ``min_parallax_deg`` and it
+    reprojects within ``max_reproj_px`` in both views.
+    """
+    uv_a = np.asarray(uv_a, np.float64).reshape(-1, 2)
+    uv_b = np.asarray(uv_b, np.float64).reshape(-1, 2)
+    if len(uv_a) == 0:
+        return np.zeros((0, 3)), np.zeros(0, bool)
+    k = camera.K
+    w2c_a = np.linalg.inv(c2w_a)[:3]
+    w2c_b = np.linalg.inv(c2w_b)[:3]
+    xh = cv2.triangulatePoints(k @ w2c_a, k @ w2c_b, uv_a.T, uv_b.T)
+    w = xh[3]
+    good_w = np.abs(w) > 1e-12
+    x = (xh[:3] / np.where(good_w, w, 1.0)).T
+    ok = good_w & np.isfinite(x).all(1)
+    out = []
+    for c2w, w2c, uv in ((c2w_a, w2c_a, uv_a), (c2w_b, w2c_b, uv_b)):
+        xc = x @ w2c[:, :3].T + w2c[:, 3]
+        z = xc[:, 2]
+        ok &= z > 1e-3
+        zs = np.where(z > 1e-3, z, 1.0)
+        proj = np.stack([camera.fx * xc[:, 0] / zs + camera.cx, camera.fy * xc[:, 1] / zs + camera.cy], -1)
+        ok &= np.linalg.norm(proj - uv, axis=1) < max_reproj_px
+        out.append(x - c2w[:3, 3])
+    ra, rb = out
+    cosang = (ra * rb).sum(1) / np.maximum(np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1), 1e-12)
+    ok &= cosang < math.cos(math.radians(min_parallax_deg))
+    return x, ok
+
+
+@dataclass
+class TwoViewResult:
+    c2w_b: np.ndarray  # pose of view b with view a at the identity, translation of unit norm
+    inliers: np.ndarray  # (N,) bool
+    points: np.ndarray  # (N, 3) in view a's camera frame (unit baseline)
+    valid: np.ndarray  # (N,) bool: inlier, triangulated, in front, enough parallax
+    median_parallax_deg: float
+
+
+def two_view_init(camera: PinholeCamera, uv_a: np.ndarray, uv_b: np.ndarray, ransac_px: float = 1.0,
+                  min_parallax_deg: float = 1.0, refine: bool = True) -> Optional[TwoViewResult]:
+    """Relative pose (unit translation) of view b w.r.t. view a from tracked pixels, or None.
+
+    Essential matrix (RANSAC, 5-point) and ``recoverPose``; with ``refine`` a two-view
+    bundle adjustment on the inliers (view a fixed) polishes pose and points.
+    """
+    uv_a = np.asarray(uv_a, np.float64).reshape(-1, 2)
+    uv_b = np.asarray(uv_b, np.float64).reshape(-1, 2)
+    if len(uv_a) < 20:
+        return None
+    k = camera.K
+    e, mask = cv2.findEssentialMat(uv_a, uv_b, k, method=cv2.RANSAC, prob=0.999, threshold=ransac_px)
+    if e is None or e.shape != (3, 3):
+        return None
+    n_in, r, t, mask2 = cv2.recoverPose(e, uv_a, uv_b, k, mask=mask.copy())
+    inl = mask2.reshape(-1) > 0
+    if n_in < 20:
+        return None
+    # recoverPose gives x_b = R x_a + t  (a -> b); c2w_b = inv([R|t]) with a at the identity
+    t_ab = np.eye(4)
+    t_ab[:3, :3] = r
+    t_ab[:3, 3] = t.reshape(-1)
+    c2w_b = np.linalg.inv(t_ab)
+    pts, ok = triangulate(camera, np.eye(4), c2w_b, uv_a, uv_b, min_parallax_deg=0.0, max_reproj_px=4 * ransac_px)
+    ok &= inl
+    if refine and ok.sum() >= 10:
+        from fmapping.tracking.ba import bundle_adjust
+
+        idx = np.flatnonzero(ok)
+        n = len(idx)
+        res = bundle_adjust(camera, [np.eye(4), c2w_b], [0], pts[idx], np.repeat([0, 1], n),
+                            np.tile(np.arange(n), 2), np.concatenate([uv_a[idx], uv_b[idx]]), huber_px=ransac_px,
+                            max_nfev=20)
+        c2w_b = res.poses[1]
+        s = np.linalg.norm(c2w_b[:3, 3])
+        if s > 1e-9:
+            c2w_b[:3, 3] /= s
+            pts[idx] = res.points / s
+        pts2, ok2 = triangulate(camera, np.eye(4), c2w_b, uv_a, uv_b, min_parallax_deg=0.0,
+                                max_reproj_px=4 * ransac_px)
+        ok = ok2 & inl
+        pts = pts2
+    ra = pts
+    rb = pts - c2w_b[:3, 3]
+    cosang = (ra * rb).sum(1) / np.maximum(np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1), 1e-12)
+    par = np.degrees(np.arccos(np.clip(cosang, -1, 1)))
+    med = float(np.median(par[ok])) if ok.any() else 0.0
+    valid = ok & (par >= min_parallax_deg)
+    return TwoViewResult(c2w_b, inl, pts, valid, med)
+
+
+def points_to_camera(c2w: np.ndarray, pts_world: np.ndarray) -> np.ndarray:
+    w2c = np.linalg.inv(c2w)
+    return pts_world @ w2c[:3, :3].T + w2c[:3, 3]

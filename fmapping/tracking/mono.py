@@ -1,0 +1,490 @@
+"""Monocular front end: two-view bootstrap, direct tracking against keyframes, windowed bundle adjustment.
+
+RGB-only tracking before (and independently of) the neural map:
+
+1. **Bootstrap.** Corners of frame 0 are followed with KLT; once the tracks to a
+   frame ``k`` show enough parallax, the essential matrix gives the relative pose
+   (unit baseline), the inlier tracks are triangulated and the scale is fixed by
+   an *anchor*: the metric baseline ``|t_k - t_0|`` from a pose source (ground
+   truth: the DIM-SLAM convention of anchoring with known first poses), or else
+   the convention that the median scene depth is ``unit_depth``. Frames ``1..k``
+   are then aligned photometrically to frame 0 with the triangulated depth.
+2. **Tracking.** Every frame is aligned by :class:`~fmapping.tracking.frontend.DirectTracker`
+   to the current keyframe (sparse depth at tracked corners); KLT tracks are
+   carried along from frame to frame.
+3. **Keyframes.** When the tracker asks for one, tracks with a landmark add an
+   observation, tracks without one are triangulated between their first keyframe
+   and the new one; then a windowed bundle adjustment (last ``window`` keyframes,
+   the two oldest fixed, which also holds the scale) refines keyframe poses and
+   landmarks; the new keyframe's reference holds every tracked landmark (at its
+   observed pixel, with the refined depth) plus, optionally, dense depth from the
+   map (``extra_depth``). New corners fill the gaps.
+
+Non-keyframe poses are stored relative to their keyframe, so :meth:`MonoFrontend.poses`
+returns them moved with the bundle-adjusted keyframes. Poses are camera-to-world
+4x4 (see :mod:`fmapping.geometry`).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+import numpy as np
+
+from fmapping.camera import PinholeCamera
+from fmapping.tracking.ba import bundle_adjust
+from fmapping.tracking.direct import inv_pose, orthonormalize, pose_distance, select_pixels, to_gray
+from fmapping.tracking.features import KltConfig, detect_corners, klt_track, to_u8, triangulate, two_view_init
+from fmapping.tracking.frontend import DirectTracker, TrackerConfig, TrackResult
+
+
+@dataclass
+class MonoConfig:
+    klt: KltConfig = field(default_factory=KltConfig)
+    init_min_parallax_deg: float = 1.0  # median parallax of the triangulated tracks to accept the bootstrap ...
+    init_min_parallax_px: float = 20.0  # ... and that parallax times the focal length (pixel noise matters)
+    init_min_points: int = 60
+    init_max_frames: int = 60  # give up the bootstrap after this many frames
+    init_min_flow_px: float = 6.0  # median track length (scaled to a 320-px-wide image) before trying
+    ransac_px: float = 1.0
+    tri_min_parallax_deg: float = 1.0
+    tri_max_reproj_px: float = 2.0
+    min_ref_points: int = 40
+    unit_depth: float = 2.0  # scale convention without an anchor: median scene depth of the bootstrap
+    window: int = 7  # keyframes in the bundle adjustment
+    ba: bool = True
+    ba_huber_px: float = 1.5
+    ba_max_nfev: int = 15
+    ba_outlier_px: float = 4.0  # observations beyond this after BA are dropped
+    dense_extra: bool = True  # add depth from ``extra_depth`` (the map) to references when given
+    klt_from_keyframe: bool = True  # re-track from the keyframe image (chained positions as the guess): no KLT drift
+    pose_refine: str = "pnp"  # per-frame pose after direct alignment: "pnp" (reprojection of tracked landmarks) | "none"
+    reinit_after: int = 3  # consecutive lost frames after which the current frame becomes a keyframe
+    #                        with a constant-depth plane at the last median depth (reported as "reinit")
+    pnp_min_points: int = 30
+    pnp_inlier_px: float = 2.0
+
+
+class _Tracks:
+    """KLT tracks: current pixel, landmark id (-1: none), first keyframe and pixel there."""
+
+    def __init__(self, uv: np.ndarray, kf: int):
+        n = len(uv)
+        self.uv = np.asarray(uv, np.float64).reshape(-1, 2).copy()
+        self.lid = np.full(n, -1, np.int64)
+        self.first_kf = np.full(n, kf, np.int64)
+        self.uv_first = self.uv.copy()
+        self.tid = np.arange(n)
+
+    def keep(self, mask: np.ndarray) -> None:
+        self.uv, self.lid, self.first_kf, self.uv_first, self.tid = (
+            self.uv[mask], self.lid[mask], self.first_kf[mask], self.uv_first[mask], self.tid[mask])
+
+    def add(self, uv: np.ndarray, kf: int) -> None:
+        n = len(uv)
+        self.uv = np.concatenate([self.uv, uv])
+        self.lid = np.concatenate([self.lid, np.full(n, -1, np.int64)])
+        self.first_kf = np.concatenate([self.first_kf, np.full(n, kf, np.int64)])
+        self.uv_first = np.concatenate([self.uv_first, uv])
+        start = int(self.tid.max()) + 1 if len(self.tid) else 0
+        self.tid = np.concatenate([self.tid, np.arange(start, start + n)])
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+
+class MonoFrontend:
+    """See the module docstring. Call :meth:`bootstrap` per frame until it returns poses, then :meth:`track`."""
+
+    def __init__(self, camera: PinholeCamera, tracker_cfg: Optional[TrackerConfig] = None,
+                 cfg: Optional[MonoConfig] = None):
+        self.camera = camera
+        self.cfg = cfg or MonoConfig()
+        self.tracker = DirectTracker(camera, tracker_cfg or TrackerConfig())
+        self.initialized = False
+        self.failed = False
+        self.init_info: dict = {}
+        self.ba_stats: list = []
+        self._buf: list = []  # bootstrap frames: (index, rgb)
+        self._tracks: Optional[_Tracks] = None
+        self._last_gray: Optional[np.ndarray] = None
+        self._kf_pose: dict = {}  # keyframe index -> c2w (refined)
+        self._kf_rgb: dict = {}  # window keyframes' images
+        self._window: list = []  # keyframe indices in the BA window
+        self._lm: list = []  # landmark world points
+        self._obs: list = []  # (kf index, landmark id, u, v)
+        self._rel: dict = {}  # frame index -> (keyframe index, inv(c2w_kf) @ c2w)
+        self._kf_index = -1
+        self._lost_run = 0
+        self.reinits: list = []
+
+    # ================================================================== bootstrap
+    def bootstrap(self, index: int, rgb: np.ndarray, c2w0: np.ndarray,
+                  anchor_baseline: Optional[Callable[[int], Optional[float]]] = None) -> Optional[dict]:
+        """Feed frames from the start. Returns {index: c2w} of all frames so far once initialised, else None.
+
+        ``anchor_baseline(index)`` gives the metric distance between the camera
+        centres of the first frame and frame ``index`` (from a pose source), or None.
+        """
+        gray = to_u8(rgb)
+        c = self.cfg
+        if not self._buf:
+            self._buf.append((index, rgb))
+            self._tracks = _Tracks(detect_corners(gray, c.klt), index)
+            self._last_gray = gray
+            self._c2w0 = orthonormalize(np.asarray(c2w0, np.float64))
+            self._hist = {index: (self._tracks.tid.copy(), self._tracks.uv.copy())}
+            return None
+        self._buf.append((index, rgb))
+        self._klt(gray)
+        self._hist[index] = (self._tracks.tid.copy(), self._tracks.uv.copy())
+        if len(self._buf) > c.init_max_frames or len(self._tracks) < c.init_min_points:
+            self.failed = True
+            return None
+        tr = self._tracks
+        flow = np.median(np.linalg.norm(tr.uv - tr.uv_first, axis=1))
+        if flow < c.init_min_flow_px * self.camera.width / 320.0:
+            return None
+        tv = two_view_init(self.camera, tr.uv_first, tr.uv, c.ransac_px, c.tri_min_parallax_deg)
+        if tv is None or tv.valid.sum() < c.init_min_points or tv.median_parallax_deg < c.init_min_parallax_deg:
+            return None
+        if np.radians(tv.median_parallax_deg) * self.camera.fx < c.init_min_parallax_px:
+            return None
+        base = anchor_baseline(index) if anchor_baseline is not None else None
+        if base is not None and base > 1e-4:
+            s, how = float(base), "anchor"  # recoverPose's translation has unit norm
+        else:
+            s, how = float(c.unit_depth / np.median(tv.points[tv.valid, 2])), "unit_depth"
+        c2w_k = tv.c2w_b.copy()
+        c2w_k[:3, 3] *= s
+        c2w_k = orthonormalize(self._c2w0 @ c2w_k)
+        world = (tv.points * s) @ self._c2w0[:3, :3].T + self._c2w0[:3, 3]
+        i0 = self._buf[0][0]
+        # landmarks and their two observations
+        sel = np.flatnonzero(tv.valid)
+        self._kf_pose = {i0: self._c2w0.copy(), index: c2w_k}
+        for j in sel:
+            lid = len(self._lm)
+            self._lm.append(world[j])
+            tr.lid[j] = lid
+            self._obs.append((i0, lid, tr.uv_first[j, 0], tr.uv_first[j, 1]))
+            self._obs.append((index, lid, tr.uv[j, 0], tr.uv[j, 1]))
+        self._window = [i0, index]
+        self._kf_rgb = {i0: self._buf[0][1], index: rgb}
+        # photometric tracking of frames 1..k against frame 0 with the landmarks' depth
+        lids = tr.lid[tr.lid >= 0]
+        pts_cam0 = self._cam_points(i0, lids, tr.uv_first[tr.lid >= 0])
+        self.tracker.set_reference_points(self._buf[0][1], pts_cam0, self._c2w0, i0)
+        self.tracker.observe(self._c2w0)
+        poses = {i0: self._c2w0.copy()}
+        for fi, frgb in self._buf[1:-1]:
+            poses[fi] = self.tracker.track(frgb).c2w
+        r = self.tracker.track(rgb, c2w_guess=self._kf_pose[index])
+        two_view_vs_photo = pose_distance(self._kf_pose[index], r.c2w)[1]
+        poses[index] = self._kf_pose[index]
+        # multi-view bundle adjustment of the bootstrap (frame 0 fixed), then the anchor scale again
+        rms = self._bootstrap_ba(poses, index, s if how == "anchor" else None)
+        for fi in poses:
+            self._rel[fi] = (i0, inv_pose(self._c2w0) @ poses[fi])
+        self._rel[index] = (index, np.eye(4))
+        poses[index] = self._kf_pose[index]
+        self.tracker.reset_motion([poses[self._buf[-2][0]], poses[index]])
+        self.init_info = {"frame": int(index), "frames": len(self._buf), "points": int(len(sel)),
+                          "median_parallax_deg": tv.median_parallax_deg, "scale": s, "scale_from": how,
+                          "two_view_vs_photometric_deg": two_view_vs_photo, "ba_rms_px": rms}
+        self._set_reference(index, rgb, gray)
+        self.initialized = True
+        self._buf = []
+        return poses
+
+    def _bootstrap_ba(self, poses: dict, k_index: int, baseline: Optional[float]) -> Optional[float]:
+        """BA over up to 6 bootstrap frames (frame 0 fixed, scale re-anchored); updates poses and landmarks."""
+        c = self.cfg
+        tr = self._tracks
+        ids = [f for f, _ in self._buf]
+        sel = sorted(set([ids[0], ids[-1]] + [ids[int(j)] for j in np.linspace(0, len(ids) - 1, min(6, len(ids)))]))
+        tid_to_lid = {int(t): int(l) for t, l in zip(tr.tid, tr.lid) if l >= 0}
+        obs_kf, obs_pt, obs_uv = [], [], []
+        lids = sorted(set(tid_to_lid.values()))
+        lpos = {l: i for i, l in enumerate(lids)}
+        for kpos, f in enumerate(sel):
+            tids, uvs = self._hist[f]
+            for t, uv in zip(tids, uvs):
+                l = tid_to_lid.get(int(t))
+                if l is not None:
+                    obs_kf.append(kpos)
+                    obs_pt.append(lpos[l])
+                    obs_uv.append(uv)
+        if len(lids) < 10:
+            return None
+        res = bundle_adjust(self.camera, [poses[f] for f in sel], [0], np.stack([self._lm[l] for l in lids]),
+                            np.array(obs_kf), np.array(obs_pt), np.array(obs_uv), c.ba_huber_px, 30)
+        new = dict(zip(sel, res.poses))
+        pts = res.points
+        c0 = self._c2w0[:3, 3]
+        if baseline is not None:
+            b = np.linalg.norm(new[k_index][:3, 3] - c0)
+            f = baseline / b if b > 1e-9 else 1.0
+            for key in new:
+                new[key][:3, 3] = c0 + f * (new[key][:3, 3] - c0)
+            pts = c0 + f * (pts - c0)
+        # frames not in the BA keep their pose relative to the nearest earlier BA frame
+        moved = {}
+        for fi in poses:
+            if fi in new:
+                moved[fi] = new[fi]
+            else:
+                prev = max(x for x in sel if x <= fi)
+                moved[fi] = orthonormalize(new[prev] @ inv_pose(poses[prev]) @ poses[fi])
+        poses.update(moved)
+        for l, p in zip(lids, pts):
+            self._lm[l] = p
+        self._kf_pose[k_index] = poses[k_index]
+        bad = res.residual_px > c.ba_outlier_px
+        return float(np.sqrt(np.mean(res.residual_px[~bad] ** 2))) if (~bad).any() else None
+
+    # ================================================================== tracking
+    def track(self, index: int, rgb: np.ndarray,
+              extra_depth: Optional[Callable[[np.ndarray], Callable]] = None) -> TrackResult:
+        """Track a frame after the bootstrap. ``extra_depth(c2w)`` -> ``uv -> depth`` callable
+        (e.g. rendered from the map) adds dense points to new keyframes."""
+        if not self.initialized:
+            raise RuntimeError("MonoFrontend.track before a successful bootstrap")
+        gray = to_u8(rgb)
+        res = self.tracker.track(rgb)
+        self._klt(gray)
+        if res.lost:
+            self._lost_run += 1
+            if self._lost_run >= self.cfg.reinit_after:
+                self._reinit(index, rgb, gray, res.c2w)
+                res.reason += f"; re-initialised at frame {index} (constant-depth keyframe)"
+                self.reinits.append(index)
+                self._lost_run = 0
+            return res
+        self._lost_run = 0
+        if self.cfg.pose_refine == "pnp":
+            t0 = time.perf_counter()
+            refined = self._pnp(res.c2w)
+            if refined is not None:
+                res.c2w = refined
+                self.tracker.correct_last(refined)
+            res.ms += (time.perf_counter() - t0) * 1000.0
+        self._rel[index] = (self._kf_index, inv_pose(self._kf_pose[self._kf_index]) @ res.c2w)
+        if res.need_keyframe:
+            t0 = time.perf_counter()
+            c2w = self._add_keyframe(index, rgb, res.c2w)
+            try:
+                self._set_reference(index, rgb, gray, extra_depth)
+            except ValueError:
+                pass  # keep the old reference; the tracker asks again next frame
+            res.c2w = c2w
+            res.ms += (time.perf_counter() - t0) * 1000.0  # keyframe work counts as tracking time
+        return res
+
+    # ================================================================== internals
+    def _klt(self, gray: np.ndarray) -> None:
+        tr = self._tracks
+        if tr is not None and len(tr):
+            new, ok = klt_track(self._last_gray, gray, tr.uv, self.cfg.klt)
+            kf_gray = getattr(self, "_kf_gray", None)
+            if self.cfg.klt_from_keyframe and kf_gray is not None and getattr(tr, "uv_kf", None) is not None:
+                # refine from the keyframe image: positions no longer accumulate frame-to-frame drift
+                ref, ok2 = klt_track(kf_gray, gray, tr.uv_kf, self.cfg.klt, guess=new)
+                good = ok2 & (np.linalg.norm(ref - new, axis=1) < 2.0)
+                new = np.where(good[:, None], ref, new)
+            tr.uv = new.astype(np.float64)
+            if getattr(tr, "uv_kf", None) is not None:
+                tr.uv_kf = tr.uv_kf[ok]
+            tr.keep(ok)
+        self._last_gray = gray
+
+    def _reinit(self, index: int, rgb, gray, c2w: np.ndarray) -> None:
+        from fmapping.tracking.direct import make_reference
+
+        med = self.tracker.reference.median_depth if self.tracker.reference is not None else self.cfg.unit_depth
+        cam = self.camera
+        depth = np.full((cam.height, cam.width), med if np.isfinite(med) else self.cfg.unit_depth, np.float32)
+        self._kf_pose[index] = np.asarray(c2w, np.float64).copy()
+        self._kf_rgb[index] = rgb
+        self._window = [index]
+        tcfg = self.tracker.cfg
+        ref = make_reference(rgb, depth, cam, self._kf_pose[index], tcfg.align.levels, tcfg.num_points, tcfg.min_grad,
+                             index, blur=tcfg.align.blur)
+        self.tracker.push_reference(ref)
+        self.tracker.reset_motion([self._kf_pose[index]])
+        self._kf_index = index
+        self._rel[index] = (index, np.eye(4))
+        tr = _Tracks(detect_corners(gray, self.cfg.klt).astype(np.float64), index)
+        tr.uv_kf = tr.uv.astype(np.float32).copy()
+        self._tracks = tr
+        self._kf_gray = gray
+
+    def _pnp(self, c2w: np.ndarray) -> Optional[np.ndarray]:
+        """Refine a pose on the reprojection error of the tracked landmarks (inliers of the given pose)."""
+        import cv2
+
+        tr = self._tracks
+        has = tr.lid >= 0
+        if has.sum() < self.cfg.pnp_min_points:
+            return None
+        x = np.stack([self._lm[i] for i in tr.lid[has]])
+        uv = tr.uv[has]
+        w2c = inv_pose(c2w)
+        y = x @ w2c[:3, :3].T + w2c[:3, 3]
+        z = np.where(y[:, 2] > 1e-6, y[:, 2], 1e-6)
+        cam = self.camera
+        proj = np.stack([cam.fx * y[:, 0] / z + cam.cx, cam.fy * y[:, 1] / z + cam.cy], -1)
+        inl = (y[:, 2] > 1e-3) & (np.linalg.norm(proj - uv, axis=1) < self.cfg.pnp_inlier_px)
+        if inl.sum() < self.cfg.pnp_min_points:
+            return None
+        rvec, _ = cv2.Rodrigues(w2c[:3, :3])
+        tvec = w2c[:3, 3].reshape(3, 1).copy()
+        ok, rvec, tvec = cv2.solvePnP(x[inl], uv[inl], cam.K, None, rvec, tvec, useExtrinsicGuess=True,
+                                      flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok:
+            return None
+        out = np.eye(4)
+        out[:3, :3] = cv2.Rodrigues(rvec)[0]
+        out[:3, 3] = tvec.reshape(-1)
+        out = orthonormalize(inv_pose(out))
+        dt, dr = pose_distance(out, c2w)
+        scale = self.tracker.reference.median_depth if self.tracker.reference is not None else 1.0
+        if dt > 0.1 * scale or dr > 5.0:
+            return None  # disagrees wildly with the photometric pose: keep that one
+        return out
+
+    def _cam_points(self, kf: int, lids: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """Camera-frame points at observed pixels ``uv`` with the depth of landmarks ``lids`` in keyframe ``kf``."""
+        if len(lids) == 0:
+            return np.zeros((0, 3))
+        w2c = inv_pose(self._kf_pose[kf])
+        x = np.stack([self._lm[i] for i in lids]) @ w2c[:3, :3].T + w2c[:3, 3]
+        z = x[:, 2]
+        ok = z > 1e-3
+        uv, z = uv[ok], z[ok]
+        cam = self.camera
+        return np.stack([(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z], -1)
+
+    def _add_keyframe(self, index: int, rgb: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+        c = self.cfg
+        tr = self._tracks
+        self._kf_pose[index] = np.asarray(c2w, np.float64).copy()
+        self._kf_rgb[index] = rgb
+        # observations of known landmarks
+        has = tr.lid >= 0
+        for j in np.flatnonzero(has):
+            self._obs.append((index, int(tr.lid[j]), tr.uv[j, 0], tr.uv[j, 1]))
+        # triangulate the others between their first keyframe and this one
+        for kf in np.unique(tr.first_kf[~has]):
+            if kf not in self._kf_pose or kf == index:
+                continue
+            m = np.flatnonzero((~has) & (tr.first_kf == kf))
+            pts, ok = triangulate(self.camera, self._kf_pose[kf], c2w, tr.uv_first[m], tr.uv[m],
+                                  c.tri_min_parallax_deg, c.tri_max_reproj_px)
+            for j, p in zip(m[ok], pts[ok]):
+                lid = len(self._lm)
+                self._lm.append(p)
+                tr.lid[j] = lid
+                self._obs.append((int(kf), lid, tr.uv_first[j, 0], tr.uv_first[j, 1]))
+                self._obs.append((index, lid, tr.uv[j, 0], tr.uv[j, 1]))
+        self._window.append(index)
+        if len(self._window) > c.window:
+            old = self._window.pop(0)
+            self._kf_rgb.pop(old, None)
+        before = self._kf_pose[index].copy()
+        if c.ba:
+            self._run_ba()
+        after = self._kf_pose[index]
+        # move the motion model with the refined keyframe
+        delta = after @ inv_pose(before)
+        self.tracker.reset_motion([delta @ p for p in self.tracker.motion_history])
+        return after
+
+    def _run_ba(self, fixed_all_but_points: bool = False) -> None:
+        c = self.cfg
+        win = list(self._window)
+        if not self._obs:
+            return
+        obs = np.array(self._obs, dtype=np.float64)
+        inwin = np.isin(obs[:, 0].astype(np.int64), win)
+        obs = obs[inwin]
+        if len(obs) == 0:
+            return
+        lids, inv = np.unique(obs[:, 1].astype(np.int64), return_inverse=True)
+        counts = np.bincount(inv)
+        keep = counts[inv] >= 2
+        obs, inv = obs[keep], inv[keep]
+        lids, inv = np.unique(obs[:, 1].astype(np.int64), return_inverse=True)
+        if len(lids) < 10:
+            return
+        kf_pos = {k: i for i, k in enumerate(win)}
+        poses = [self._kf_pose[k] for k in win]
+        fixed = list(range(len(win))) if fixed_all_but_points else list(range(min(2, len(win))))
+        t0 = time.perf_counter()
+        res = bundle_adjust(self.camera, poses, fixed, np.stack([self._lm[i] for i in lids]),
+                            np.array([kf_pos[int(k)] for k in obs[:, 0]]), inv, obs[:, 2:4],
+                            c.ba_huber_px, c.ba_max_nfev)
+        for k, p in zip(win, res.poses):
+            self._kf_pose[k] = p
+        for i, p in zip(lids, res.points):
+            self._lm[int(i)] = p
+        # drop outlying observations (in the window)
+        bad = res.residual_px > c.ba_outlier_px
+        if bad.any():
+            badset = {(int(a), int(b)) for a, b in obs[bad][:, :2]}
+            self._obs = [o for o in self._obs if (int(o[0]), int(o[1])) not in badset]
+            bad_l = {b for _, b in badset}
+            tr = self._tracks
+            for j in np.flatnonzero(np.isin(tr.lid, list(bad_l))):
+                tr.lid[j] = -1  # re-triangulate later from this keyframe on
+                tr.first_kf[j] = win[-1]
+                tr.uv_first[j] = tr.uv[j]
+        self.ba_stats.append({"keyframes": len(win), "points": int(len(lids)), "obs": int(len(obs)),
+                              "rms_before_px": float(np.sqrt(2 * res.cost_before / max(1, len(obs)))),
+                              "rms_after_px": float(np.sqrt(2 * res.cost_after / max(1, len(obs)))),
+                              "outliers": int(bad.sum()), "ms": (time.perf_counter() - t0) * 1000, "nfev": res.nfev})
+
+    def _set_reference(self, index: int, rgb, gray, extra_depth=None) -> None:
+        c = self.cfg
+        tr = self._tracks
+        has = tr.lid >= 0
+        pts = self._cam_points(index, tr.lid[has], tr.uv[has])
+        if extra_depth is not None and c.dense_extra:
+            dense = self._dense_points(rgb, extra_depth(self._kf_pose[index]))
+            if len(dense):
+                pts = np.concatenate([pts, dense])
+        if len(pts) < c.min_ref_points:
+            raise ValueError(f"keyframe {index}: only {len(pts)} points with depth")
+        self.tracker.set_reference_points(rgb, pts, self._kf_pose[index], index)
+        self._kf_index = index
+        # restart tracks here: live ones continue, fresh corners start at this keyframe
+        newc = detect_corners(gray, c.klt, existing=tr.uv)
+        if len(newc):
+            tr.add(newc.astype(np.float64), index)
+        tr.uv_kf = tr.uv.astype(np.float32).copy()
+        self._kf_gray = gray
+
+    def _dense_points(self, rgb, depth_fn) -> np.ndarray:
+        cfg = self.tracker.cfg
+        uv = select_pixels(to_gray(rgb), cfg.num_points, cfg.min_grad).astype(np.float64)
+        z = np.asarray(depth_fn(uv), np.float64)
+        ok = np.isfinite(z) & (z > 1e-3)
+        uv, z = uv[ok], z[ok]
+        return np.stack([(uv[:, 0] - self.camera.cx) / self.camera.fx * z,
+                         (uv[:, 1] - self.camera.cy) / self.camera.fy * z, z], -1)
+
+    # ================================================================== results
+    @property
+    def keyframe_index(self) -> int:
+        return self._kf_index
+
+    def keyframe_poses(self) -> dict:
+        return {k: p.copy() for k, p in self._kf_pose.items()}
+
+    def poses(self) -> dict:
+        """Every tracked frame's pose, moved with its bundle-adjusted keyframe."""
+        return {i: orthonormalize(self._kf_pose[k] @ rel) for i, (k, rel) in self._rel.items() if k in self._kf_pose}
+
+    def landmarks(self) -> np.ndarray:
+        return np.stack(self._lm) if self._lm else np.zeros((0, 3))

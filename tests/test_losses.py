@@ -1,0 +1,184 @@
+"""Losses against analytic cases: a textured plane z = 2 seen by two cameras."""
+import math
+
+import pytest
+import torch
+
+from fmapping.camera import PinholeCamera
+from fmapping.geometry import make_pose, so3_exp
+from fmapping.losses import (
+    depth_l1_loss, patch_offsets, photometric_loss, sample_consistency_cost, sample_frames, sample_views, warping_loss,
+)
+
+CAM = PinholeCamera(80.0, 80.0, 39.5, 29.5, 80, 60)
+PLANE_Z = 2.0
+
+
+def texture(x, y):
+    """Smooth colour texture on the plane (world x, y in metres) -> (..., 3) in [0, 1]."""
+    return torch.stack([
+        0.5 + 0.4 * torch.sin(9.0 * x + 1.0),
+        0.5 + 0.4 * torch.cos(7.0 * y - 0.5),
+        0.5 + 0.3 * torch.sin(5.0 * x + 6.0 * y),
+    ], -1)
+
+
+def render_plane(c2w):
+    """Analytic image of the plane for a camera with optical axis +z (no rotation about x/y)."""
+    uv = CAM.pixel_grid(dtype=torch.float64)
+    o, d = CAM.rays(c2w, uv)
+    t = (PLANE_Z - o[:, 2]) / d[:, 2]
+    p = o + d * t[:, None]
+    return texture(p[:, 0], p[:, 1]).reshape(CAM.height, CAM.width, 3).float(), t.reshape(CAM.height, CAM.width)
+
+
+def setup_two_views():
+    eye = torch.eye(3, dtype=torch.float64)
+    c2w = torch.stack([
+        make_pose(eye, torch.tensor([0.0, 0.0, 0.0], dtype=torch.float64)),
+        make_pose(eye, torch.tensor([0.3, 0.05, 0.0], dtype=torch.float64)),
+    ])
+    imgs = torch.stack([render_plane(c)[0] for c in c2w])
+    return imgs, c2w.float()
+
+
+def rays_for(c2w, uv):
+    return CAM.rays(c2w, uv)
+
+
+def test_photometric_l2_huber_values():
+    pred = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    tgt = torch.tensor([[0.5, 0.5, 0.5], [1.0, 1.0, 0.95]])
+    # l2: mean over rays of mean over channels: (0.25 + 0.0025/3)/2
+    assert photometric_loss(pred, tgt).item() == pytest.approx((0.25 + 0.0025 / 3) / 2)
+    # huber(delta=0.1): |e|=0.5 -> 0.1*(0.5-0.05)=0.045 ; |e|=0.05 -> 0.5*0.0025=0.00125
+    assert photometric_loss(pred, tgt, "huber", delta=0.1).item() == pytest.approx((0.045 + 0.00125 / 3) / 2)
+    w = torch.tensor([1.0, 0.0])
+    assert photometric_loss(pred, tgt, weight=w).item() == pytest.approx(0.25)
+    with pytest.raises(ValueError):
+        photometric_loss(pred, tgt, "l3")
+
+
+def test_depth_l1_ignores_invalid():
+    pred = torch.tensor([1.0, 2.0, 3.0, 4.0])
+    tgt = torch.tensor([1.5, 0.0, float("nan"), 3.0])
+    assert depth_l1_loss(pred, tgt).item() == pytest.approx(0.75)
+
+
+def test_sample_views_matches_integer_pixels_and_patch():
+    img = torch.rand(2, 5, 7, 3)
+    uv = torch.tensor([[[3.0, 2.0], [0.0, 4.0]], [[6.0, 0.0], [1.0, 1.0]]])
+    out = sample_views(img, uv)
+    torch.testing.assert_close(out[0, 0], img[0, 2, 3])
+    torch.testing.assert_close(out[1, 0], img[1, 0, 6])
+    # halfway between two pixels is their mean
+    mid = sample_views(img[:1], torch.tensor([[[2.5, 1.0]]]))[0, 0]
+    torch.testing.assert_close(mid, (img[0, 1, 2] + img[0, 1, 3]) / 2)
+    off = patch_offsets(1)
+    assert off.shape == (9, 2) and off.abs().max() == 1
+    got = sample_frames(img, torch.tensor([1, 0]), torch.tensor([[2.0, 3.0], [4.0, 1.0]])[:, None] + off)
+    torch.testing.assert_close(got[0, 4], img[1, 3, 2])
+    torch.testing.assert_close(got[1, 0], img[0, 0, 3])
+
+
+def _center_rays(c2w, n=200, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    # pixels of view 0 that are seen by view 1 (right part, away from the border)
+    u = torch.randint(35, 74, (n,), generator=g).float()
+    v = torch.randint(5, 50, (n,), generator=g).float()
+    uv = torch.stack([u, v], -1)
+    o, d = rays_for(c2w[0], uv)
+    return uv, o, d
+
+
+def test_warping_loss_zero_at_true_depth_and_positive_when_off():
+    imgs, c2w = setup_two_views()
+    uv, o, d = _center_rays(c2w)
+    src = torch.zeros(len(uv), dtype=torch.long)
+    true = torch.full((len(uv),), PLANE_Z)
+    r0 = warping_loss(o, d, true, uv, src, imgs, c2w, CAM)
+    assert r0.valid_rays.all()
+    assert r0.loss.item() < 0.01  # only bilinear interpolation error of a smooth texture
+    r1 = warping_loss(o, d, true * 1.15, uv, src, imgs, c2w, CAM)
+    assert r1.loss.item() > 5 * r0.loss.item() and r1.loss.item() > 0.03
+    r2 = warping_loss(o, d, true * 0.85, uv, src, imgs, c2w, CAM)
+    assert r2.loss.item() > 5 * r0.loss.item()
+
+
+def test_warping_loss_gradient_points_to_true_depth():
+    imgs, c2w = setup_two_views()
+    uv, o, d = _center_rays(c2w, n=300, seed=1)
+    src = torch.zeros(len(uv), dtype=torch.long)
+    for factor, sign in ((1.04, 1.0), (0.96, -1.0)):
+        depth = torch.full((len(uv),), PLANE_Z * factor, requires_grad=True)
+        res = warping_loss(o, d, depth, uv, src, imgs, c2w, CAM)
+        res.loss.backward()
+        g = depth.grad[res.valid_rays]
+        # descent moves most depths toward the plane
+        assert (torch.sign(g) == sign).float().mean() > 0.7
+    # one gradient-descent step reduces the loss
+    depth = torch.full((len(uv),), PLANE_Z * 1.04, requires_grad=True)
+    res = warping_loss(o, d, depth, uv, src, imgs, c2w, CAM)
+    res.loss.backward()
+    with torch.no_grad():
+        step = depth - 0.02 / depth.grad.abs().max() * depth.grad
+    assert warping_loss(o, d, step, uv, src, imgs, c2w, CAM).loss < res.loss
+
+
+def test_warping_loss_gradient_reaches_poses():
+    imgs, c2w = setup_two_views()
+    uv, _, _ = _center_rays(c2w)
+    c2w = c2w.clone().requires_grad_(True)
+    o, d = CAM.rays(c2w[0], uv)
+    src = torch.zeros(len(uv), dtype=torch.long)
+    res = warping_loss(o, d, torch.full((len(uv),), PLANE_Z * 1.05), uv, src, imgs, c2w, CAM)
+    res.loss.backward()
+    assert torch.isfinite(c2w.grad).all() and c2w.grad[1].abs().sum() > 0
+
+
+def test_warping_loss_masks_out_of_view_and_self():
+    imgs, c2w = setup_two_views()
+    # left border pixels of view 0 project left of view 1's image (it sits 0.3 m to the right)
+    uv = torch.tensor([[2.0, 30.0], [5.0, 10.0], [60.0, 30.0]])
+    o, d = rays_for(c2w[0], uv)
+    src = torch.zeros(3, dtype=torch.long)
+    res = warping_loss(o, d, torch.full((3,), PLANE_Z), uv, src, imgs, c2w, CAM)
+    assert res.mask[:, 0].sum() == 0  # a ray never compares with its own frame
+    assert res.valid_rays.tolist() == [False, False, True]
+    assert res.per_ray[0] == 0 and torch.isinf(res.errors[0, 1])
+    # behind the camera: negative depth gives no valid view
+    res = warping_loss(o, d, torch.full((3,), -1.0), uv, src, imgs, c2w, CAM)
+    assert not res.valid_rays.any()
+    # occlusion test: view 1 "sees" a surface at 1 m, so the point at 2 m is hidden
+    vd = torch.full((2, CAM.height, CAM.width), 1.0)
+    res = warping_loss(o, d, torch.full((3,), PLANE_Z), uv, src, imgs, c2w, CAM, view_depths=vd)
+    assert not res.valid_rays.any()
+
+
+def test_warping_loss_robust_keep_uses_best_views():
+    imgs, c2w = setup_two_views()
+    # a third view whose image is garbage (an occluder): keep=0.5 of 2 views uses the good one
+    bad = torch.rand(1, CAM.height, CAM.width, 3, generator=torch.Generator().manual_seed(0))
+    eye = torch.eye(3)
+    c2w3 = torch.cat([c2w, make_pose(eye, torch.tensor([0.1, -0.05, 0.0]))[None]])
+    imgs3 = torch.cat([imgs, bad])
+    uv, o, d = _center_rays(c2w)
+    src = torch.zeros(len(uv), dtype=torch.long)
+    depth = torch.full((len(uv),), PLANE_Z)
+    all_views = warping_loss(o, d, depth, uv, src, imgs3, c2w3, CAM, keep=1.0)
+    best = warping_loss(o, d, depth, uv, src, imgs3, c2w3, CAM, keep=0.5)
+    assert best.loss.item() < 0.01 < all_views.loss.item()
+
+
+def test_sample_consistency_cost_minimum_at_surface():
+    imgs, c2w = setup_two_views()
+    uv, o, d = _center_rays(c2w, n=100)
+    src = torch.zeros(len(uv), dtype=torch.long)
+    t = torch.linspace(1.0, 3.0, 41)
+    pts = o[:, None] + d[:, None] * t[None, :, None]
+    ref = sample_frames(imgs, src, uv[:, None] + patch_offsets(1))
+    cost, nvalid = sample_consistency_cost(pts, ref, src, imgs, c2w, CAM)
+    assert cost.shape == (100, 41)
+    best_t = t[cost.argmin(-1)]
+    assert ((best_t - PLANE_Z).abs() <= 0.1).float().mean() > 0.9
+    assert (nvalid[:, 20] == 1).all()
