@@ -42,7 +42,7 @@ from fmapping.device import pick_device
 from fmapping.field import FieldConfig, build_field
 from fmapping.geometry import se3_exp, se3_inverse
 from fmapping.losses import depth_l1_loss, photometric_loss, sample_consistency_cost, warping_loss
-from fmapping.render import render_rays, render_weights
+from fmapping.render import alpha_to_weights, composite, raw_to_alpha, render_rays, sample_deltas
 from fmapping.sampling import ray_aabb, sample_pdf, stratified
 from fmapping.sampling.sliding_window import sliding_window_sample
 
@@ -55,7 +55,7 @@ class MapperConfig:
     # --- init stage
     init_frames: int = 15
     init_rounds: tuple = ((0, 32), (3, 64), (4, 64), (5, 64))  # (sliding window size (0 = stratified), samples per ray)
-    init_iters_per_round: int = 60
+    init_iters_per_round: int = 75
     optimize_init_poses: bool = True  # frame 0 fixed; se(3) corrections for the others
     freeze_decoder_after_init: bool = True
     # --- on-the-fly stage
@@ -71,6 +71,7 @@ class MapperConfig:
     sampler: str = "pdf"  # on-the-fly fine samples: "pdf" | "sliding_window" | "stratified"
     sw_window: int = 5
     color_threshold: float = 0.01  # colour evaluated only where weight > this x the ray's max weight
+    active_threshold: float = 1e-3  # coarse samples re-evaluated with gradient only above this x max opacity (0: all)
     # --- optimiser
     lr_grid: float = 0.02
     lr_decoder: float = 0.001
@@ -81,9 +82,10 @@ class MapperConfig:
     warp_weight: float = 2.0
     warp_radius: int = 1
     warp_dilations: tuple = (1.0,)
-    warp_keep: float = 0.5
+    warp_keep: float = 1.0
+    warp_views: int = 8  # target views per iteration (random subset of the window; 0 = all)
     warp_depth: str = "expected"  # depth for warping: "expected" (sum w t / acc) | "far" (unreached mass at the ray's far bound)
-    pc_weight: float = 0.0  # per-sample photo-consistency loss sum_i w_i (cost_i - mean cost) (plane-sweep cost volume)
+    pc_weight: float = 4.0  # per-sample photo-consistency loss sum_i w_i (cost_i - mean cost) (plane-sweep cost volume)
     pc_rays: int = 512  # rays (of rays_per_iter) that get the per-sample cost
     pc_views: int = 4  # other window views the per-sample cost is computed in
     pc_radius: int = 0  # patch radius of the per-sample cost
@@ -416,22 +418,62 @@ class Mapper:
 
     def _render_batch(self, o: Tensor, d: Tensor, mode: str, n_coarse: int, n_fine: int, grad: bool = True,
                       sw_window: int = 0):
-        """Sample and render rays. ``mode``: "stratified" (n_coarse samples, all rendered),
-        "pdf" / "sliding_window" (coarse pass without gradient then n_fine samples; all rendered)."""
+        """Sample and render rays (background black).
+
+        ``mode`` "stratified": ``n_coarse`` stratified samples, all rendered. "pdf" /
+        "sliding_window": a coarse stratified pass without gradient, then ``n_fine``
+        importance / sliding-window samples; the union is rendered. With ``grad`` and
+        ``active_threshold`` > 0, only *active* coarse samples are re-evaluated with gradient:
+        those not hidden (transmittance > 1e-4) and with opacity above ``active_threshold`` x
+        the ray's largest coarse opacity (all of them on rays that are still empty); the others
+        keep their exact no-grad density, so the forward render is unchanged and only
+        negligible gradients are skipped.
+        """
+        cfg = self.cfg
         tn, tf, ok = self._near_far(o, d)
         gen = self._gen if grad else None
         t = stratified(tn, tf, n_coarse, perturb=grad, generator=gen)
-        if mode != "stratified" and n_fine > 0:
-            with torch.no_grad():
-                coarse = render_weights(self.field, o, d, t)
-                w = coarse.weights
-                if mode == "sliding_window":
-                    t_new = sliding_window_sample(t, w, n_fine, window=max(sw_window, 1), generator=gen)
-                else:
-                    t_new = sample_pdf(t, w, n_fine, deterministic=not grad, generator=gen)
-            t = torch.sort(torch.cat([t, t_new.detach()], -1), -1).values
+        if mode == "stratified" or n_fine <= 0:
+            with torch.set_grad_enabled(grad and torch.is_grad_enabled()):
+                out = render_rays(self.field, o, d, t, background=0.0, color_weight_threshold=cfg.color_threshold)
+            return out, (tn, tf, ok)
+        field = self.field
+        dnorm = d.norm(dim=-1)
+        n = o.shape[0]
+        with torch.no_grad():
+            xyz_c = o[:, None, :] + t[..., None] * d[:, None, :]
+            raw_c = field.density_raw(xyz_c.reshape(-1, 3)).view(n, n_coarse)
+            alpha_c = raw_to_alpha(raw_c, sample_deltas(t, dnorm), field.cfg.alpha_mode, field.cfg.density_shift)
+            w = alpha_to_weights(alpha_c)
+            if mode == "sliding_window":
+                t_new = sliding_window_sample(t, w, n_fine, window=max(sw_window, 1), generator=gen)
+            else:
+                t_new = sample_pdf(t, w, n_fine, deterministic=not grad, generator=gen)
+            t_all, order = torch.sort(torch.cat([t, t_new], -1), -1)
+            raw_known = torch.cat([raw_c, torch.zeros_like(t_new)], -1).gather(1, order)
+            if grad and cfg.active_threshold > 0:
+                trans = torch.cumprod(1 - alpha_c + 1e-10, -1)
+                trans = torch.cat([torch.ones_like(trans[:, :1]), trans[:, :-1]], -1)
+                amax = alpha_c.amax(-1, keepdim=True)
+                act_c = ((alpha_c > cfg.active_threshold * amax) | (amax < 1e-2)) & (trans > 1e-4)
+            else:
+                act_c = torch.ones_like(alpha_c, dtype=torch.bool)
+            active = torch.cat([act_c, torch.ones_like(t_new, dtype=torch.bool)], -1).gather(1, order)
         with torch.set_grad_enabled(grad and torch.is_grad_enabled()):
-            out = render_rays(self.field, o, d, t, background=0.0, color_weight_threshold=self.cfg.color_threshold)
+            ri, si = active.nonzero(as_tuple=True)
+            xyz = o[ri] + t_all[ri, si, None] * d[ri]
+            raw_act = field.density_raw(xyz)
+            raw = raw_known.index_put((ri, si), raw_act)
+            alpha = raw_to_alpha(raw, sample_deltas(t_all, dnorm), field.cfg.alpha_mode, field.cfg.density_shift)
+            out = composite(alpha, t_all, None, None)
+            wd = out.weights.detach()
+            mask = wd > cfg.color_threshold * wd.amax(-1, keepdim=True)
+            cr, cs = mask.nonzero(as_tuple=True)
+            rgb = torch.zeros(n, 3, dtype=alpha.dtype, device=alpha.device)
+            if cr.numel() > 0:
+                c = field.color(o[cr] + t_all[cr, cs, None] * d[cr])
+                rgb = rgb.index_add(0, cr, out.weights[cr, cs, None] * c)
+            out.rgb = rgb
         return out, (tn, tf, ok)
 
     # ================================================================ optimisation
@@ -473,10 +515,18 @@ class Mapper:
                 depth = out.depth + (1 - out.acc) * tf
             else:
                 depth = out.depth / out.acc.clamp_min(1e-3)
+            if 0 < cfg.warp_views < v:  # a random subset of the window as target views (cost ~ views)
+                sub = torch.randperm(v, generator=g)[:cfg.warp_views].to(self.device)
+                pos = torch.full((v,), -1, dtype=torch.long, device=self.device)
+                pos[sub] = torch.arange(len(sub), device=self.device)
+                w_imgs, w_c2w, w_src = imgs[sub], c2w[sub], pos[fi]
+            else:
+                w_imgs, w_c2w, w_src = imgs, c2w, fi
             for dil in cfg.warp_dilations:
                 ref = _pixel_patches(imgs, fi, u, vv, cfg.warp_radius, int(round(float(dil))))
-                res = warping_loss(o, d, depth, uv, fi, imgs, c2w, cam, radius=cfg.warp_radius, dilation=float(dil),
-                                   keep=cfg.warp_keep, min_z=cfg.near, ray_weight=okf, ref_colors=ref)
+                res = warping_loss(o, d, depth, uv, w_src, w_imgs, w_c2w, cam, radius=cfg.warp_radius,
+                                   dilation=float(dil), keep=cfg.warp_keep, min_z=cfg.near, ray_weight=okf,
+                                   ref_colors=ref)
                 warp = warp + res.loss / len(cfg.warp_dilations)
             loss = loss + cfg.warp_weight * warp
         if cfg.pc_weight > 0 and v > 1:

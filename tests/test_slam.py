@@ -9,11 +9,11 @@ from fmapping.trajectory import read_tum_trajectory
 
 TINY = """
 mapper:
-  init_iters_per_round: 5
-  iters_per_window: 3
-  rays_per_iter: 128
-  n_coarse: 16
-  n_fine: 8
+  init_iters_per_round: 2
+  iters_per_window: 1
+  rays_per_iter: 64
+  n_coarse: 8
+  n_fine: 4
   final_global_iters: 0
   init_frames: 8
   window_size: 8
@@ -64,10 +64,11 @@ def test_slam_with_gt_poses_writes_them(scene, tmp_path):
     from fmapping.slam import run_slam
 
     root, cfg = scene
-    stats = run_slam(_args(root, tmp_path / "gt", cfg, poses="gt"))
+    stats = run_slam(_args(root, tmp_path / "gt", cfg, poses="gt", max_frames=12))
     _, est = read_tum_trajectory(tmp_path / "gt" / "traj.txt")
     _, gt = read_tum_trajectory(root / "groundtruth.txt")
-    np.testing.assert_allclose(est, gt[:40], atol=1e-6)
+    assert len(est) == 12
+    np.testing.assert_allclose(est, gt[:12], atol=1e-6)
     assert stats["summary"]["ate_none_rmse_m"] < 1e-6
 
 

@@ -28,7 +28,7 @@ from fmapping.camera import PinholeCamera
 @dataclass
 class KltConfig:
     max_corners: int = 800
-    quality: float = 0.005  # Shi-Tomasi quality level
+    quality: float = 0.001  # Shi-Tomasi quality level (low: weakly textured walls still give corners)
     min_distance: int = 7  # pixels between corners
     window: int = 21  # LK window (pixels)
     levels: int = 4  # LK pyramid levels

@@ -43,7 +43,8 @@ from fmapping.tracking.frontend import DirectTracker, TrackerConfig, TrackResult
 class MonoConfig:
     klt: KltConfig = field(default_factory=KltConfig)
     init_min_parallax_deg: float = 1.0  # median parallax of the triangulated tracks to accept the bootstrap ...
-    init_min_parallax_px: float = 20.0  # ... and that parallax times the focal length (pixel noise matters)
+    init_min_parallax_px: float = 20.0  # ... and that parallax times the focal length (pixel noise matters);
+    init_fallback_parallax_px: float = 10.0  # accepted instead once fewer than 2 x init_min_points tracks survive
     init_min_points: int = 60
     init_max_frames: int = 60  # give up the bootstrap after this many frames
     init_min_flow_px: float = 6.0  # median track length (scaled to a 320-px-wide image) before trying
@@ -149,7 +150,8 @@ class MonoFrontend:
         tv = two_view_init(self.camera, tr.uv_first, tr.uv, c.ransac_px, c.tri_min_parallax_deg)
         if tv is None or tv.valid.sum() < c.init_min_points or tv.median_parallax_deg < c.init_min_parallax_deg:
             return None
-        if np.radians(tv.median_parallax_deg) * self.camera.fx < c.init_min_parallax_px:
+        need_px = c.init_min_parallax_px if len(tr) >= 2 * c.init_min_points else c.init_fallback_parallax_px
+        if np.radians(tv.median_parallax_deg) * self.camera.fx < need_px:
             return None
         base = anchor_baseline(index) if anchor_baseline is not None else None
         if base is not None and base > 1e-4:

@@ -1,0 +1,214 @@
+"""Mapping benchmark: quality and speed of the mapper, side by side in one process.
+
+    python bench/mapping.py                 # CP default on seeds 0 1 2 + all variants on seed 0
+    python bench/mapping.py --quick         # a short smoke run (small scene, few frames)
+    python bench/mapping.py --variants cp,vm --seeds 0 --compare-seeds 0
+
+Each run streams a synthetic scene (``fmapping.synthetic.generate_scene``, RGB only, GT
+poses) through :class:`fmapping.mapper.Mapper`, exports the point cloud like
+``fmapping map`` (every 3rd frame, consistency-filtered) and scores it against the
+scene's ``gt_visible_cloud.ply``. Variants (config overrides of the CP default):
+
+* field kinds: ``cp`` (default), ``vm``, ``mlp`` (iMAP-like), ``grid`` (dense voxels);
+* sampling: ``cp-stratified`` (stratified only, same sample count), ``cp-sliding``
+  (sliding-window sampler for the on-the-fly stage instead of importance sampling);
+* opacity: ``cp-occupancy`` (UNISURF occupancy instead of density);
+* ablations: ``cp-nowarp`` (no warping loss), ``cp-nopc`` (no per-sample photo-consistency).
+
+Reported per run: seconds per on-the-fly window update (min / median: the machine is
+shared, timings are noisy), init / final / total seconds, parameters, FLOPs per point,
+accuracy / completion / completion ratio (5 cm), held-out PSNR. Writes
+``bench/results/mapping.json`` and ``bench/results/mapping.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+VARIANTS = {
+    "cp": {},
+    "vm": {"field": {"kind": "vm"}},
+    "mlp": {"field": {"kind": "mlp"}},
+    "grid": {"field": {"kind": "grid"}},
+    "cp-stratified": {"sampler": "stratified", "n_coarse": 48, "n_fine": 0},
+    "cp-sliding": {"sampler": "sliding_window"},
+    "cp-occupancy": {"field": {"alpha_mode": "occupancy"}},
+    "cp-nowarp": {"warp_weight": 0.0},
+    "cp-nopc": {"pc_weight": 0.0},
+}
+QUICK = {"init_iters_per_round": 25, "final_global_iters": 40, "rays_per_iter": 512}
+
+
+def scene_dir(base: Path, seed: int, frames: int, size: tuple[int, int]) -> Path:
+    from fmapping.synthetic import generate_scene
+
+    d = base / f"synth_s{seed}_f{frames}_{size[0]}x{size[1]}"
+    if not (d / "scene.json").is_file():
+        print(f"[bench] generating {d}", flush=True)
+        generate_scene(d, seed=seed, frames=frames, size=size)
+    return d
+
+
+def run_one(data: Path, overrides: dict, threads: int, export_every: int = 3) -> dict:
+    import torch
+
+    from fmapping.config import merge
+    from fmapping.datasets import open_dataset
+    from fmapping.export import export_point_cloud
+    from fmapping.mapper import Mapper, MapperConfig
+    from fmapping.metrics import recon_metrics
+    from fmapping.pipeline import _heldout_psnr, _scene_aabb
+    from fmapping.ply import read_ply
+
+    torch.set_num_threads(threads)
+    ds = open_dataset(data)
+    cfg = merge(MapperConfig(), {**overrides, "optimize_init_poses": False})
+    poses = list(ds.gt_poses)
+    mapper = Mapper(cfg, ds.camera, aabb=_scene_aabb(ds, cfg, poses))
+    t0 = time.perf_counter()
+    for i in range(len(ds)):
+        f = ds[i]
+        mapper.add_frame(f.rgb, poses[i], f.timestamp)
+    mapper.finish()
+    t_map = time.perf_counter() - t0
+    s = mapper.stats()
+    allp = mapper.frame_poses()
+    t0 = time.perf_counter()
+    pts, _ = export_point_cloud(mapper, {k: allp[k] for k in sorted(allp)[::export_every]}, ds.camera,
+                                near=cfg.near, far=cfg.far, n_samples=cfg.n_coarse, n_importance=max(cfg.n_fine, 16))
+    t_exp = time.perf_counter() - t0
+    gt = read_ply(ds.meta["gt_visible_cloud"]).points
+    rec = recon_metrics(pts, gt, threshold=0.05)
+    win = [w["seconds"] for w in s["windows"] if w["kind"] == "window"]
+    return {
+        "parameters": s["parameters"],
+        "flops_per_point": int(mapper.field.flops_per_point()),
+        "window_seconds": win,
+        "window_seconds_min": float(np.min(win)) if win else None,
+        "window_seconds_median": float(np.median(win)) if win else None,
+        "init_seconds": s["init_seconds"],
+        "final_seconds": s["final_seconds"],
+        "mapping_seconds": t_map,
+        "export_seconds": t_exp,
+        "points": int(len(pts)),
+        "accuracy_cm": rec["accuracy_cm"],
+        "completion_cm": rec["completion_cm"],
+        "completion_ratio": rec["completion_ratio"],
+        "psnr_heldout": _heldout_psnr(mapper, ds, list(range(len(ds)))),
+    }
+
+
+def plot(results: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(results["variants"])
+    if not names:
+        return
+    agg = {n: results["variants"][n]["mean"] for n in names}
+    fig, ax = plt.subplots(1, 4, figsize=(18, 4.5))
+    x = np.arange(len(names))
+    med = [agg[n]["window_seconds_median"] or 0 for n in names]
+    mn = [agg[n]["window_seconds_min"] or 0 for n in names]
+    ax[0].bar(x - 0.2, mn, 0.4, label="min")
+    ax[0].bar(x + 0.2, med, 0.4, label="median")
+    ax[0].axhline(2.0, color="r", ls="--", lw=1, label="2.0 s target")
+    ax[0].set_title("seconds per window update (20 iters)")
+    ax[0].legend()
+    ax[1].bar(x, [agg[n]["parameters"] for n in names])
+    ax[1].set_yscale("log")
+    ax[1].set_title("parameters")
+    ax[2].bar(x, [agg[n]["completion_ratio"] for n in names])
+    ax[2].axhline(90, color="r", ls="--", lw=1)
+    ax[2].set_title("completion ratio (5 cm) %")
+    ax[3].bar(x - 0.2, [agg[n]["accuracy_cm"] for n in names], 0.4, label="accuracy")
+    ax[3].bar(x + 0.2, [agg[n]["completion_cm"] for n in names], 0.4, label="completion")
+    ax[3].set_title("cm (lower is better)")
+    ax[3].legend()
+    for a in ax:
+        a.set_xticks(x)
+        a.set_xticklabels(names, rotation=35, ha="right", fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+
+
+def _mean(runs: list[dict]) -> dict:
+    keys = ["parameters", "flops_per_point", "window_seconds_min", "window_seconds_median", "init_seconds",
+            "final_seconds", "mapping_seconds", "export_seconds", "points", "accuracy_cm", "completion_cm",
+            "completion_ratio", "psnr_heldout"]
+    out = {}
+    for k in keys:
+        vals = [r[k] for r in runs if r.get(k) is not None]
+        out[k] = float(np.mean(vals)) if vals else None
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="short run: 1 seed, 40 frames at 160x120, fewer iterations")
+    ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma list of {', '.join(VARIANTS)}")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds for the cp default")
+    ap.add_argument("--compare-seeds", type=int, nargs="+", default=[0], help="seeds for the other variants")
+    ap.add_argument("--frames", type=int, default=200)
+    ap.add_argument("--size", default="320x240")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--scenes", default=str(Path(tempfile.gettempdir()) / "fmapping_bench_scenes"))
+    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "mapping.json"))
+    a = ap.parse_args(argv)
+    size = tuple(int(v) for v in a.size.lower().split("x"))
+    extra = {}
+    if a.quick:
+        a.frames, size, a.seeds, a.compare_seeds = 40, (160, 120), [0], [0]
+        extra = QUICK
+    names = [n.strip() for n in a.variants.split(",") if n.strip()]
+    bad = [n for n in names if n not in VARIANTS]
+    if bad:
+        ap.error(f"unknown variants {bad}; choose from {', '.join(VARIANTS)}")
+    base = Path(a.scenes)
+    results = {"settings": {"frames": a.frames, "size": list(size), "threads": a.threads, "quick": a.quick,
+                            "seeds": a.seeds, "compare_seeds": a.compare_seeds, "overrides": extra},
+               "variants": {}}
+    out = Path(a.out)
+    for name in names:
+        seeds = a.seeds if name == "cp" else a.compare_seeds
+        runs = []
+        for seed in seeds:
+            data = scene_dir(base, seed, a.frames, size)
+            ov = _merge_dicts(extra, VARIANTS[name])
+            print(f"[bench] {name} seed {seed} ...", flush=True)
+            r = run_one(data, ov, a.threads)
+            r["seed"] = seed
+            runs.append(r)
+            print(f"[bench] {name} seed {seed}: window {r['window_seconds_min']:.2f}/{r['window_seconds_median']:.2f} s "
+                  f"(min/median), acc {r['accuracy_cm']:.2f} cm, comp {r['completion_cm']:.2f} cm, "
+                  f"ratio {r['completion_ratio']:.1f} %, params {r['parameters']}", flush=True)
+        results["variants"][name] = {"overrides": VARIANTS[name], "runs": runs, "mean": _mean(runs)}
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(results, indent=2))  # partial results survive an interrupted run
+    plot(results, out.with_suffix(".png"))
+    print(json.dumps({n: v["mean"] for n, v in results["variants"].items()}, indent=2))
+    return 0
+
+
+def _merge_dicts(a: dict, b: dict) -> dict:
+    out = dict(a)
+    for k, v in b.items():
+        out[k] = _merge_dicts(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+if __name__ == "__main__":
+    sys.exit(main())
