@@ -223,13 +223,14 @@ def sample_consistency_cost(
         tgt = sample_views(images, (uv_t[:, :, None, :] + off).reshape(v, -1, 2)).reshape(v, n, s, p, -1)
         err = (tgt - ref_colors[None, :, None]).abs().mean((-1, -2)).reshape(v, -1).T  # (NS, V)
         mask = mask.T
-        e_masked = torch.where(mask, err, torch.full_like(err, math.inf))
-        srt, _ = torch.sort(e_masked, dim=-1)
         nvalid = mask.sum(-1)
         k = torch.clamp(torch.ceil(keep * nvalid.to(err.dtype)).long(), min=1)
-        ranks = torch.arange(v, device=dev)[None, :]
-        use = ranks < k[:, None]
-        srt = torch.where(use & torch.isfinite(srt), srt, torch.zeros_like(srt))
-        cost = srt.sum(-1) / k.to(err.dtype)
+        if keep >= 1.0:  # plain mean over the valid views: no sort needed
+            cost = torch.where(mask, err, torch.zeros_like(err)).sum(-1) / k.to(err.dtype)
+        else:
+            srt, _ = torch.sort(torch.where(mask, err, torch.full_like(err, math.inf)), dim=-1)
+            use = torch.arange(v, device=dev)[None, :] < k[:, None]
+            srt = torch.where(use & torch.isfinite(srt), srt, torch.zeros_like(srt))
+            cost = srt.sum(-1) / k.to(err.dtype)
         cost = torch.where(nvalid > 0, cost, torch.full_like(cost, no_view_cost))
         return cost.reshape(n, s), nvalid.reshape(n, s)

@@ -33,6 +33,9 @@ from fmapping.mapper import Mapper, MapperConfig, aabb_from_depth, aabb_from_pos
 
 log = logging.getLogger("fmapping.pipeline")
 
+EXPORT_EVERY = 3  # export renders every 3rd frame's view
+MESH_RESOLUTION = 160  # marching-cubes grid nodes per axis (level 0.5 of the per-cell opacity)
+
 
 def _pose_source(ds, poses_arg: str) -> list:
     """Per-frame c2w (or None when unknown) from ``"gt"`` or a TUM trajectory file."""
@@ -142,17 +145,19 @@ def run_map(args) -> dict:
     # ---- export
     t0 = time.perf_counter()
     all_poses = mapper.frame_poses()
-    kf = mapper.keyframe_ids() + [i for i in mapper.window_ids() if i not in mapper.keyframe_ids()]
-    kf_poses = {k: all_poses[k] for k in sorted(set(kf))}
-    pts, cols = export_point_cloud(mapper, kf_poses, ds.camera, near=cfg.near, far=cfg.far)
+    # every EXPORT_EVERY-th frame (not only keyframes): views seen briefly between keyframes count too
+    exp_poses = {k: all_poses[k] for k in sorted(all_poses)[::EXPORT_EVERY]}
+    samples = (cfg.n_coarse, max(cfg.n_fine, 16))
+    pts, cols = export_point_cloud(mapper, exp_poses, ds.camera, near=cfg.near, far=cfg.far,
+                                   n_samples=samples[0], n_importance=samples[1])
     write_ply(out / "map.ply", pts, cols)
 
     def render_fn(c2w, cam):
-        r = mapper.render(c2w, cam, samples=(48, 16))
+        r = mapper.render(c2w, cam, samples=samples)
         return {"depth": r["depth"] / np.maximum(r["acc"], 1e-6), "acc": r["acc"]}
 
-    verts, faces, vcols = export_mesh(mapper.field, mapper.aabb, 160, kf_poses, ds.camera, render=render_fn,
-                                      near=cfg.near, far=cfg.far)
+    verts, faces, vcols = export_mesh(mapper.field, mapper.aabb, MESH_RESOLUTION, exp_poses, ds.camera,
+                                      render=render_fn, near=cfg.near, far=cfg.far)
     write_ply(out / "mesh.ply", verts, vcols, faces)
     ts = mapper.frame_timestamps()
     write_tum_trajectory(out / "traj.txt", np.array([ts[k] for k in all_poses]), np.stack(list(all_poses.values())))

