@@ -33,9 +33,7 @@ def _render_fn(source, near: float, far: float, n_samples: int, n_importance: in
     if hasattr(source, "render") and hasattr(source, "field"):  # Mapper
         def fn(c2w, cam):
             out = source.render(c2w, cam, samples=(n_samples, n_importance))
-            acc = out["acc"]
-            dn = np.where(acc > 1e-6, out["depth"] / np.maximum(acc, 1e-6), 0.0)
-            return {"rgb": out["rgb"], "depth": dn, "acc": acc}
+            return {"rgb": out["rgb"], "depth": out["depth_normalized"], "acc": out["acc"]}
         return fn
 
     def fn(c2w, cam):

@@ -154,7 +154,7 @@ def run_map(args) -> dict:
 
     def render_fn(c2w, cam):
         r = mapper.render(c2w, cam, samples=samples)
-        return {"depth": r["depth"] / np.maximum(r["acc"], 1e-6), "acc": r["acc"]}
+        return {"depth": r["depth_normalized"], "acc": r["acc"]}
 
     verts, faces, vcols = export_mesh(mapper.field, mapper.aabb, MESH_RESOLUTION, exp_poses, ds.camera,
                                       render=render_fn, near=cfg.near, far=cfg.far)

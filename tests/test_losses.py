@@ -1,11 +1,10 @@
 """Losses against analytic cases: a textured plane z = 2 seen by two cameras."""
-import math
 
 import pytest
 import torch
 
 from fmapping.camera import PinholeCamera
-from fmapping.geometry import make_pose, so3_exp
+from fmapping.geometry import make_pose
 from fmapping.losses import (
     depth_l1_loss, patch_offsets, photometric_loss, sample_consistency_cost, sample_frames, sample_views, warping_loss,
 )
