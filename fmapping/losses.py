@@ -58,6 +58,23 @@ def depth_l1_loss(pred: Tensor, target: Tensor) -> Tensor:
     return (pred[valid] - target[valid]).abs().mean()
 
 
+def expected_depth_l1(weights: Tensor, t: Tensor, acc: Tensor, t_far: Tensor, target: Tensor) -> Tensor:
+    """Expected |termination depth - target| of the rendering distribution (mean over valid rays).
+
+    ``sum_i w_i |t_i - z| + (1 - acc) |t_far - z|``: unreached mass counts as ending at the
+    ray's far bound. Unlike ``|sum w t - z|`` every sample gets a direct signal (weight in front
+    of or behind the surface is penalised by its distance), so a surface that first formed at
+    the wrong depth is removed instead of being dragged slowly. Rays with invalid target
+    (<= 0 or non-finite) are ignored; 0 when none is valid.
+    """
+    valid = torch.isfinite(target) & (target > 0)
+    if not bool(valid.any()):
+        return weights.sum() * 0.0
+    z = target[valid, None]
+    per = (weights[valid] * (t[valid] - z).abs()).sum(-1) + (1 - acc[valid]) * (t_far[valid] - z[:, 0]).abs()
+    return per.mean()
+
+
 def patch_offsets(radius: int = 1, dilation: float = 1.0, device=None, dtype=torch.float32) -> Tensor:
     """Pixel offsets (P, 2) of a (2r+1)^2 square patch, spaced ``dilation`` pixels."""
     r = torch.arange(-radius, radius + 1, device=device, dtype=dtype) * dilation

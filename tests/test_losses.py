@@ -6,7 +6,7 @@ import torch
 from fmapping.camera import PinholeCamera
 from fmapping.geometry import make_pose
 from fmapping.losses import (
-    depth_l1_loss, patch_offsets, photometric_loss, sample_consistency_cost, sample_frames, sample_views, warping_loss,
+    depth_l1_loss, expected_depth_l1, patch_offsets, photometric_loss, sample_consistency_cost, sample_frames, sample_views, warping_loss,
 )
 
 CAM = PinholeCamera(80.0, 80.0, 39.5, 29.5, 80, 60)
@@ -62,6 +62,22 @@ def test_depth_l1_ignores_invalid():
     pred = torch.tensor([1.0, 2.0, 3.0, 4.0])
     tgt = torch.tensor([1.5, 0.0, float("nan"), 3.0])
     assert depth_l1_loss(pred, tgt).item() == pytest.approx(0.75)
+
+
+def test_expected_depth_l1_values_and_gradient():
+    t = torch.tensor([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0], [1.0, 2.0, 3.0]])
+    w = torch.tensor([[0.0, 1.0, 0.0], [0.5, 0.0, 0.25], [0.0, 0.0, 0.0]], requires_grad=True)
+    acc = w.sum(-1)
+    far = torch.tensor([4.0, 4.0, 4.0])
+    z = torch.tensor([2.0, 2.0, 0.0])  # third ray has no valid depth
+    loss = expected_depth_l1(w, t, acc, far, z)
+    # ray 0: all mass at z -> 0; ray 1: 0.5*1 + 0.25*1 + 0.25*|4-2| = 1.25
+    assert loss.item() == pytest.approx((0.0 + 1.25) / 2)
+    loss.backward()
+    # mass at the target depth is cheaper than unreached mass; mass far from it is dearer
+    # d/dw_i = (|t_i - z| - |far - z|) / n_valid_rays
+    torch.testing.assert_close(w.grad[1], torch.tensor([-0.5, -1.0, -0.5]))
+    assert w.grad[0, 1] < w.grad[0, 0] and w.grad[2].abs().sum() == 0
 
 
 def test_sample_views_matches_integer_pixels_and_patch():
