@@ -23,8 +23,12 @@ test: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/fmapping demo --out $(DEMO)
 
+# Hours on 2 CPU cores: every benchmark, then the README table (bench/report.py).
+BENCHES := field_micro transport tracking mapping system
 bench: $(STAMP)
-	for f in bench/*.py; do $(BIN)/python $$f || exit 1; done
+	for b in $(BENCHES); do $(BIN)/python bench/$$b.py || exit 1; done
+	$(BIN)/python bench/mapping.py --real-data
+	$(BIN)/python bench/report.py
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

@@ -3,6 +3,8 @@
     python bench/mapping.py                 # CP default on seeds 0 1 2 + all variants on seed 0
     python bench/mapping.py --quick         # a short smoke run (small scene, few frames)
     python bench/mapping.py --variants cp,vm --seeds 0 --compare-seeds 0
+    python bench/mapping.py --speed         # window-update seconds of the default at 1 and 2 threads
+    python bench/mapping.py --real-data     # TUM fr1_rpy and NeRF lego from ../shared/data
 
 Each run streams a synthetic scene (``fmapping.synthetic.generate_scene``, RGB only, GT
 poses) through :class:`fmapping.mapper.Mapper`, exports the point cloud like
@@ -24,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -124,6 +127,41 @@ def interleaved_window_timing(mappers: dict, rounds: int) -> dict:
     return {k: {"min": float(np.min(v)), "median": float(np.median(v)), "all": v} for k, v in times.items()}
 
 
+def speed(data: Path, frames: int, rounds: int, thread_counts: list[int]) -> dict:
+    """Seconds of one on-the-fly window update of the CP default, per torch thread count.
+
+    Maps the first ``frames`` frames once (GT poses, RGB only), then times ``rounds``
+    window updates (``iters_per_window`` iterations on the last window) for each thread
+    count round-robin, so load swings hit every setting alike.
+    """
+    import torch
+
+    from fmapping.datasets import open_dataset
+    from fmapping.mapper import Mapper, MapperConfig
+    from fmapping.config import merge
+    from fmapping.pipeline import _scene_aabb
+
+    torch.set_num_threads(max(thread_counts))
+    ds = open_dataset(data)
+    cfg = merge(MapperConfig(), {"optimize_init_poses": False})
+    poses = list(ds.gt_poses)
+    mapper = Mapper(cfg, ds.camera, aabb=_scene_aabb(ds, cfg, poses))
+    for i in range(min(frames, len(ds))):
+        f = ds[i]
+        mapper.add_frame(f.rgb, poses[i], f.timestamp)
+    ids = mapper.window_ids()
+    times: dict = {str(t): [] for t in thread_counts}
+    for _ in range(rounds):
+        for t in thread_counts:
+            torch.set_num_threads(t)
+            t0 = time.perf_counter()
+            mapper._run_iters("window", ids, cfg.iters_per_window, cfg.sampler, cfg.n_coarse, cfg.n_fine, cfg.sw_window)
+            times[str(t)].append(time.perf_counter() - t0)
+    return {"frames_mapped": min(frames, len(ds)), "window_frames": len(ids), "rays_per_iter": cfg.rays_per_iter,
+            "samples_per_ray": cfg.n_coarse + cfg.n_fine, "iters_per_window": cfg.iters_per_window,
+            "seconds": {t: {"min": float(np.min(v)), "median": float(np.median(v)), "all": v} for t, v in times.items()}}
+
+
 def plot(results: dict, path: Path) -> None:
     import matplotlib
 
@@ -188,7 +226,20 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "mapping.json"))
     ap.add_argument("--real-data", action="store_true",
                     help="instead: TUM fr1_rpy and NeRF lego from ../shared/data (held-out PSNR + pictures)")
+    ap.add_argument("--speed", action="store_true",
+                    help="instead: time window updates of the CP default at 1 and 2 threads (mapping_speed.json)")
+    ap.add_argument("--speed-frames", type=int, default=60, help="frames mapped before timing (--speed)")
     a = ap.parse_args(argv)
+    if a.speed:
+        size = tuple(int(v) for v in a.size.lower().split("x"))
+        res = speed(scene_dir(Path(a.scenes), a.seeds[0], a.frames, size), a.speed_frames, a.timing_rounds, [1, 2])
+        res["cpu_load_at_end"] = list(os.getloadavg())
+        for t, v in res["seconds"].items():
+            print(f"[bench] {t} thread(s): window update {v['min']:.2f} / {v['median']:.2f} s (min / median)", flush=True)
+        out = Path(a.out).with_name("mapping_speed.json")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(res, indent=2))
+        return 0
     if a.real_data:
         out = Path(a.out).with_name("mapping_real.json")
         res = run_real(a.threads, out.parent)

@@ -3,7 +3,7 @@
     fmapping synth --out DIR [--seed S] [--frames N] [--size WxH]
     fmapping info  --data DIR [--camera fx,fy,cx,cy]
     fmapping map   --data DIR --poses gt|PATH.txt --out OUT [--config cfg.yaml] [--field cp|vm|mlp|grid] [--use-depth]
-    fmapping slam  --data DIR --out OUT [--poses photometric|kiss-icp|gt|PATH.txt] [--config cfg.yaml]
+    fmapping slam  --data DIR --out OUT [--poses photometric|kiss-icp|gt|PATH.txt] [--config cfg.yaml] [--no-export]
     fmapping eval recon --pred P.ply --gt G.ply
     fmapping eval traj  --est E.txt --gt G.txt [--align sim3|se3|none]
     fmapping up    [--data DIR] [--poses tracker|gt] [--out OUT]
@@ -60,6 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", default=None)
     p.add_argument("--use-depth", action="store_true")
     p.add_argument("--device", default="auto")
+    p.add_argument("--no-export", dest="export", action="store_false",
+                   help="skip map.ply / mesh.ply at the end (traj.txt and stats.json are still written)")
 
     p = sub.add_parser("eval", help="evaluate reconstructions and trajectories")
     esub = p.add_subparsers(dest="what", required=True)
@@ -69,7 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--samples", type=int, default=200_000)
     e.add_argument("--threshold", type=float, default=0.05, help="completion-ratio distance in metres")
     e.add_argument("--seed", type=int, default=0)
-    e = esub.add_parser("traj", help="ATE RMSE after Umeyama alignment, and RPE")
+    e = esub.add_parser("traj", help="ATE RMSE after Umeyama alignment, orientation error after an "
+                                     "orientation-only fit, and RPE")
     e.add_argument("--est", required=True)
     e.add_argument("--gt", required=True)
     e.add_argument("--align", default="sim3", choices=["sim3", "se3", "none"])

@@ -58,18 +58,26 @@ def _coerce(val: Any, tp, where: str) -> Any:
     return val
 
 
+def read_yaml_mapping(path: str | Path) -> dict:
+    """The top-level mapping of a YAML file (empty file -> ``{}``); :class:`ConfigError` naming
+    the file when it is missing, not YAML, or not a mapping."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: invalid YAML: {e}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
+    return data
+
+
 def load_config(default: T, path: Optional[str | Path] = None, overrides: Optional[dict] = None) -> T:
     """``default`` updated by the YAML file at ``path`` and then by ``overrides``."""
     cfg = default
     if path is not None:
-        path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"config file not found: {path}")
-        try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{path}: invalid YAML: {e}") from e
-        cfg = merge(cfg, data, str(path))
+        cfg = merge(cfg, read_yaml_mapping(path), str(path))
     if overrides:
         cfg = merge(cfg, overrides, "overrides")
     return cfg

@@ -8,7 +8,18 @@ camera-to-world poses, z-normalised rays whose parameter is the camera depth).
   confirmed by the renders of other views (multi-view depth consistency), optionally
   checks photo-consistency against the input images, back-projects them and
   voxel-downsamples the result. Floaters (low opacity, or seen from one view only)
-  are dropped.
+  are dropped. By default the views are rendered by :func:`render_view` (same samples
+  as the generic renderers; one density evaluation per sample, from a trilinear node
+  table that is exact for CP / VM / grid fields (:func:`node_density`); no colour
+  during the render: each output point's colour is rendered once at the end, from
+  the k largest-weight samples of one of its pixels); ``fast=False`` renders with the
+  mapper's / :func:`fmapping.render.render_image`'s generic renderer (the slow
+  reference). Measured on the 200-frame 320x240 synthetic benchmark map (67 views,
+  stride 2, 1 thread, CPU seconds on a loaded machine): 42.5 s -> 9.9 s (min of 3),
+  identical accuracy / completion / completion ratio. Empty-space skipping with exact
+  per-cell density bounds was tried and dropped: it removed ~80 % of the coarse
+  samples, but the 16 importance samples sit on the surface and cannot be skipped,
+  and the cell lookups cost about as much as the node-table interpolation they save.
 * :func:`export_mesh` runs marching cubes (``skimage.measure.marching_cubes``) on
   the per-cell opacity of the field sampled on a regular grid, and keeps the
   triangles whose vertices some camera saw (in its frustum and not behind the
@@ -16,6 +27,7 @@ camera-to-world poses, z-normalised rays whose parameter is the camera depth).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable, Optional, Sequence, Union
 
 import numpy as np
@@ -23,7 +35,7 @@ import torch
 from torch import Tensor
 
 from fmapping.camera import PinholeCamera
-from fmapping.render import raw_to_alpha, render_image
+from fmapping.render import alpha_to_weights, raw_to_alpha, render_image, sample_deltas
 
 RenderFn = Callable[[np.ndarray, PinholeCamera], dict]
 
@@ -43,17 +55,263 @@ def _render_fn(source, near: float, far: float, n_samples: int, n_importance: in
     return fn
 
 
+@dataclass(frozen=True)
+class NodeDensity:
+    """A field's raw density tabulated on ``nodes``^3 grid nodes and interpolated trilinearly.
+
+    Nodes run from ``origin`` with step ``spacing`` (3,) over the field's box; ``values``
+    (nodes^3,) is flat, x major ([x, y, z] order). Where the field's raw density is
+    multilinear between these nodes (CP, VM and dense-grid fields at their own node
+    resolution: sums of products of linear / bilinear interpolants), the interpolation
+    equals :meth:`Field.density_raw` to float rounding, at ~1/3 of the cost of a CP
+    evaluation (one 8-node gather + 3 lerps instead of 3 x components line lookups).
+    """
+
+    origin: Tensor
+    spacing: Tensor
+    nodes: int
+    values: Tensor
+
+    def raw_rays(self, o: Tensor, d: Tensor, t: Tensor, check_inside: bool = True) -> Tensor:
+        """Raw density (N, S) at ``o + t d`` (rays (N, 3), ``t`` (N, S)); outside the box
+        :data:`fmapping.field.EMPTY_RAW` (skip that test with ``check_inside=False`` when
+        every sample is known to be inside, e.g. rays clipped to the field's box)."""
+        from fmapping.field import EMPTY_RAW
+
+        c = self.nodes - 1
+        f = torch.addcmul(((o - self.origin) / self.spacing)[:, None, :], t[..., None], (d / self.spacing)[:, None, :])
+        i0 = f.floor().clamp_(0, c - 1)
+        w = f - i0
+        n = self.nodes
+        if n ** 3 >= 2 ** 24:  # flat node numbers must stay exact in float
+            i0 = i0.double()
+        base = (i0 @ torch.tensor([n * n, n, 1.0], dtype=i0.dtype, device=i0.device)).long()
+        offs = torch.tensor([a * n * n + b * n + e for a in (0, 1) for b in (0, 1) for e in (0, 1)], device=o.device)
+        idx = base[..., None] + offs
+        v = self.values.index_select(0, idx.reshape(-1)).view(idx.shape)  # (N, S, 8) cell corners, x major
+        v = torch.lerp(v[..., :4], v[..., 4:], w[..., 0:1])
+        v = torch.lerp(v[..., :2], v[..., 2:], w[..., 1:2])
+        raw = torch.lerp(v[..., 0], v[..., 1], w[..., 2])
+        if check_inside:
+            inside = ((f >= 0) & (f <= c)).all(-1)
+            raw = torch.where(inside, raw, torch.full_like(raw, EMPTY_RAW))
+        return raw
+
+
+def _node_resolution(field) -> Optional[int]:
+    """Nodes per axis over which ``field``'s raw density is multilinear, or None (unknown kind)."""
+    from fmapping.field.cp import CPField
+    from fmapping.field.grid import GridField
+    from fmapping.field.vm import VMField
+
+    if isinstance(field, (CPField, VMField)):
+        return int(field.density_lines.shape[2])
+    if isinstance(field, GridField):
+        return int(field.density_grid.shape[-1])
+    return None
+
+
+@torch.no_grad()
+def _node_raw(field, box: np.ndarray, r: int, chunk: int = 262144) -> np.ndarray:
+    """``field.density_raw`` at the nodes of an ``r``^3 grid over ``box`` (2, 3): (r, r, r) float32, [x, y, z].
+
+    For a CP field over its own box at its own resolution the nodes are the line nodes
+    and the values are the einsum of the density lines (~100x faster, same numbers to
+    float rounding); otherwise the field is evaluated at every node."""
+    from fmapping.field.cp import CPField
+
+    if type(field) is CPField and r == field.density_lines.shape[2] and np.allclose(
+            box, field.aabb.detach().cpu().numpy(), rtol=0, atol=1e-6):
+        lines = field.density_lines[..., 0].detach().cpu().float()  # (3, C, R)
+        return torch.einsum("ci,cj,ck->ijk", lines[0], lines[1], lines[2]).numpy()
+    axes = [np.linspace(box[0, a], box[1, a], r) for a in range(3)]
+    gx, gy, gz = np.meshgrid(*axes, indexing="ij")
+    pts = np.stack([gx.reshape(-1), gy.reshape(-1), gz.reshape(-1)], -1)
+    raw = np.empty(r ** 3, np.float32)
+    for s in range(0, len(pts), chunk):
+        x = torch.as_tensor(pts[s:s + chunk], dtype=field.dtype, device=field.device)
+        raw[s:s + chunk] = field.density_raw(x).cpu().numpy()
+    return raw.reshape(r, r, r)
+
+
+def node_density(field, max_nodes: int = 2 ** 26) -> Optional[NodeDensity]:
+    """:class:`NodeDensity` of a CP, VM or dense-grid ``field`` at its own node resolution
+    (exact), or None for other fields (MLP, custom: their density is not multilinear) or
+    when the table would exceed ``max_nodes`` entries."""
+    r = _node_resolution(field)
+    if r is None or r ** 3 > max_nodes:
+        return None
+    box = np.asarray(field.aabb.detach().cpu(), np.float64)
+    vals = torch.from_numpy(_node_raw(field, box, r)).reshape(-1)
+    dev, dtype = field.device, field.dtype
+    return NodeDensity(origin=torch.as_tensor(box[0], dtype=dtype, device=dev),
+                       spacing=torch.as_tensor((box[1] - box[0]) / (r - 1), dtype=dtype, device=dev),
+                       nodes=r, values=vals.to(dev, dtype))
+
+
+def _raw(field, node: Optional[NodeDensity], o: Tensor, d: Tensor, t: Tensor, inside: bool) -> Tensor:
+    """Raw density (N, S) at the samples ``o + t d`` (from the node table when given)."""
+    if node is not None:
+        return node.raw_rays(o, d, t, check_inside=not inside).to(t.dtype)
+    xyz = o[:, None, :] + t[..., None] * d[:, None, :]
+    return field.density_raw(xyz.reshape(-1, 3)).view_as(t).to(t.dtype)
+
+
+def _render_chunk(field, o: Tensor, d: Tensor, tn: Tensor, tf: Tensor, n_samples: int, n_importance: int,
+                  node: Optional[NodeDensity], inside: bool, color_threshold: float,
+                  color_min_acc: Optional[float], color_samples: Optional[int], defer: bool = False) -> tuple:
+    """rgb (N, 3), depth ``sum w t`` (N,), acc (N,) of rays ``o + t d`` on ``[tn, tf]``; see :func:`render_view`.
+    With ``defer``, ``(t, w)`` (N, k) of the colour samples instead of rgb."""
+    from fmapping.sampling import sample_pdf, stratified
+
+    mode, shift = field.cfg.alpha_mode, field.cfg.density_shift
+    dnorm = d.norm(dim=-1)
+    t = stratified(tn, tf, n_samples, perturb=False)
+    raw = _raw(field, node, o, d, t, inside)
+    deltas = sample_deltas(t, dnorm)
+    if n_importance > 0:
+        w = alpha_to_weights(raw_to_alpha(raw, deltas, mode, shift))
+        t_new = sample_pdf(t, w, n_importance, deterministic=True)
+        t, order = torch.sort(torch.cat([t, t_new], -1), -1)
+        raw = torch.cat([raw, _raw(field, node, o, d, t_new, inside)], -1).gather(1, order)
+        deltas = sample_deltas(t, dnorm)
+    w = alpha_to_weights(raw_to_alpha(raw, deltas, mode, shift))
+    acc = w.sum(-1)
+    depth = (w * t).sum(-1)
+    rgb = torch.zeros(o.shape[0], 3, dtype=w.dtype, device=w.device)
+    rays = torch.ones_like(acc, dtype=torch.bool) if color_min_acc is None else acc >= color_min_acc
+    if not defer and not bool(rays.any()):
+        return rgb, depth, acc
+    if color_samples is not None:  # the k largest weights, scaled to the ray's opacity
+        k = min(int(color_samples), t.shape[1])
+        wk, sk = w.topk(k, -1)
+        wk = wk * (acc / wk.sum(-1).clamp_min(1e-12))[:, None] * rays[:, None]
+        tk = t.gather(1, sk)
+        if defer:
+            return (tk, wk), depth, acc
+        ri = rays.nonzero()[:, 0]
+        wi, ti = wk[ri].reshape(-1), tk[ri].reshape(-1)
+        ri = ri.repeat_interleave(k)
+    else:
+        mask = (w > color_threshold * w.amax(-1, keepdim=True)) & rays[:, None]
+        ri, si = mask.nonzero(as_tuple=True)
+        wi, ti = w[ri, si], t[ri, si]
+    if ri.numel() > 0:
+        vd = None
+        if field.cfg.view_dependent:
+            vd = d[ri] / dnorm[ri, None].clamp_min(1e-12)
+        c = field.color(torch.addcmul(o[ri], ti[:, None], d[ri]), vd).to(w.dtype)
+        rgb.index_add_(0, ri, wi[:, None] * c)
+    return rgb, depth, acc
+
+
+@torch.no_grad()
+def render_view(field, camera: PinholeCamera, c2w, near: float, far: float, n_samples: int, n_importance: int = 0,
+                *, aabb=None, node: Optional[NodeDensity] = None, color_threshold: float = 1e-4,
+                color_min_acc: Optional[float] = None, color_samples: Optional[int] = None,
+                defer_color: bool = False, chunk: int = 4096) -> dict:
+    """Render one view for export: numpy ``rgb`` (H, W, 3) in [0, 1], ``depth`` (H, W) =
+    ``depth / acc`` (camera z of the expected surface, 0 where acc < 1e-6) and ``acc``.
+
+    Same samples as :meth:`fmapping.mapper.Mapper.render` / :func:`fmapping.render.render_image`:
+    rays clipped to ``[near, far]`` and the box ``aabb`` (default the field's),
+    ``n_samples`` stratified bin centres, then ``n_importance`` deterministic inverse-CDF
+    samples, black background. Cheaper: every sample's density is evaluated once (the
+    merged set reuses the coarse values), from ``node`` (:func:`node_density`, exact for
+    CP / VM / grid fields) when given; colour is evaluated only on rays with ``acc >=
+    color_min_acc`` when given (rgb 0 elsewhere; ``inf``: no colour at all), at the
+    samples whose weight exceeds ``color_threshold`` x the ray's largest weight (the
+    renderers' rule) or, with ``color_samples`` = k, at the k largest-weight samples
+    only, their weighted colour scaled to the ray's ``acc``. ``defer_color`` (needs
+    ``color_samples``): no colour is evaluated; instead ``color_t`` / ``color_w`` (H, W, k)
+    give those samples' ray parameters and scaled weights (0 on rays below
+    ``color_min_acc``), so that ``rgb = sum_k color_w * field.color(o + color_t * d)``.
+    """
+    from fmapping.sampling import ray_aabb
+
+    if defer_color and color_samples is None:
+        raise ValueError("render_view: defer_color needs color_samples")
+
+    dev, dtype = field.device, field.dtype
+    box = field.aabb if aabb is None else torch.as_tensor(
+        np.asarray(aabb.detach().cpu() if isinstance(aabb, Tensor) else aabb, np.float64))
+    box = box.to(dev, dtype)
+    fbox = field.aabb.to(dev, dtype)
+    inside = bool((box[0] >= fbox[0]).all() and (box[1] <= fbox[1]).all())  # rays clipped inside the field's box
+    c2w_t = torch.as_tensor(np.asarray(c2w.detach().cpu() if isinstance(c2w, Tensor) else c2w), dtype=torch.float64)
+    if c2w_t.shape != (4, 4):
+        raise ValueError(f"render_view: c2w must be 4x4, got {tuple(c2w_t.shape)}")
+    o_all, d_all = camera.rays(c2w_t, camera.pixel_grid(dtype=torch.float64))
+    o_all, d_all = o_all.to(dev, dtype), d_all.to(dev, dtype)
+    rgb, dep, acc = [], [], []
+    for s in range(0, o_all.shape[0], chunk):
+        o, d = o_all[s:s + chunk], d_all[s:s + chunk]
+        tn, tf, hit = ray_aabb(o, d, box, near_min=near)
+        tf = tf.clamp_max(far)
+        tf = torch.where(hit & (tf > tn), tf, tn)
+        r = _render_chunk(field, o, d, tn, tf, n_samples, n_importance, node, inside, color_threshold,
+                          color_min_acc, color_samples, defer_color)
+        rgb.append(r[0])
+        dep.append(r[1])
+        acc.append(r[2])
+    h, w = camera.height, camera.width
+    acc_t, dep_t = torch.cat(acc), torch.cat(dep)
+    dn = torch.where(acc_t > 1e-6, dep_t / acc_t.clamp_min(1e-6), torch.zeros_like(acc_t))
+    out = {"depth": dn.reshape(h, w).cpu().numpy(), "acc": acc_t.reshape(h, w).cpu().numpy()}
+    if defer_color:
+        out["color_t"] = torch.cat([r[0] for r in rgb]).reshape(h, w, -1).cpu().numpy()
+        out["color_w"] = torch.cat([r[1] for r in rgb]).reshape(h, w, -1).cpu().numpy()
+    else:
+        out["rgb"] = torch.cat(rgb).reshape(h, w, 3).clamp(0, 1).cpu().numpy()
+    return out
+
+
+def _fast_render_fn(source, near: float, far: float, n_samples: int, n_importance: int,
+                    color_min_acc: Optional[float], color_samples: Optional[int], use_nodes: bool,
+                    defer_color: bool = False) -> tuple[RenderFn, object]:
+    """Like :func:`_render_fn` with :func:`render_view` (a Mapper's field, box, near / far and colour
+    threshold); also returns the field."""
+    kw: dict = {"color_min_acc": color_min_acc, "color_samples": color_samples, "defer_color": defer_color}
+    if hasattr(source, "render") and hasattr(source, "field"):  # Mapper
+        if source.field is None:
+            raise RuntimeError("export_point_cloud: the map is not initialised yet")
+        field = source.field
+        near, far = source.cfg.near, source.cfg.far
+        kw.update(aabb=source.aabb, color_threshold=source.cfg.color_threshold)
+    else:
+        field = source
+    kw["node"] = node_density(field) if use_nodes else None
+
+    def fn(c2w, cam):
+        return render_view(field, cam, c2w, near, far, n_samples, n_importance, **kw)
+    return fn, field
+
+
+def _voxel_groups(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Voxel of each point (``inv``, voxels sorted by integer (x, y, z) index), points per voxel
+    and the first point of each voxel."""
+    keys = np.floor(points / voxel).astype(np.int64)
+    lo = keys.min(0)
+    span = keys.max(0) - lo + 1
+    if float(span[0]) * float(span[1]) * float(span[2]) < 2.0 ** 62:  # one int64 per voxel: a fast 1-D unique
+        k = keys - lo
+        flat = (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]
+        _, first, inv, counts = np.unique(flat, return_index=True, return_inverse=True, return_counts=True)
+    else:
+        _, first, inv, counts = np.unique(keys, axis=0, return_index=True, return_inverse=True, return_counts=True)
+    return inv.reshape(-1), counts, first
+
+
 def voxel_downsample(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
-    """Average points and colours per cubic voxel of side ``voxel`` (<= 0: unchanged)."""
+    """Average points and colours per cubic voxel of side ``voxel`` (<= 0: unchanged).
+
+    Output voxels are sorted by their integer (x, y, z) index, lexicographically."""
     if voxel <= 0 or len(points) == 0:
         return points, colors
-    keys = np.floor(points / voxel).astype(np.int64)
-    _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
-    out_p = np.zeros((len(counts), 3))
-    out_c = np.zeros((len(counts), 3))
-    np.add.at(out_p, inv, points)
-    np.add.at(out_c, inv, colors.astype(np.float64))
+    inv, counts, _ = _voxel_groups(points, voxel)
+    n = len(counts)
+    out_p = np.stack([np.bincount(inv, weights=points[:, a], minlength=n) for a in range(3)], -1)
+    out_c = np.stack([np.bincount(inv, weights=colors[:, a].astype(np.float64), minlength=n) for a in range(3)], -1)
     return out_p / counts[:, None], out_c / counts[:, None]
 
 
@@ -94,6 +352,9 @@ def export_point_cloud(
     n_samples: int = 64,
     n_importance: int = 32,
     max_depth: Optional[float] = None,
+    fast: bool = True,
+    node_grid: bool = True,
+    color_samples: Optional[int] = 4,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Coloured point cloud of the map seen from ``poses``.
 
@@ -106,6 +367,20 @@ def export_point_cloud(
     ``min_consistent`` rendered a depth within ``depth_tol`` (relative) of the point's
     depth (and, with ``photo_tol``, an image colour within ``photo_tol``). The result is
     voxel-downsampled (``voxel`` m). Returns points (M, 3) float64 and colours (M, 3) uint8.
+
+    Rendering: ``fast`` (default) uses :func:`render_view`: the same ``n_samples`` +
+    ``n_importance`` samples per ray as the generic renderer, each density evaluated once
+    (with ``node_grid``, from the field's :func:`node_density` table: exact for CP, VM and
+    grid fields), no colour at all when ``images`` are given; else, with ``color_samples``
+    = k, the colour of each *output* point is rendered once, after the filters and the
+    voxel grouping, from one of its pixels (the first of its voxel) at that ray's k
+    largest-weight samples (renormalised to its opacity) instead of averaging the
+    rendered colours of all its pixels (on the synthetic benchmark map ~1 colour level
+    apart on average); with ``color_samples=None`` every pixel with ``acc >= min_acc``
+    is coloured with the renderer's weight threshold and averaged, as the reference.
+    ``fast=False``: the generic renderer (:meth:`Mapper.render` / :func:`render_image`),
+    the slow reference. A Mapper renders with its own ``near`` / ``far`` / box (``near``
+    here is only the filter).
     """
     keys = list(poses.keys()) if isinstance(poses, dict) else list(range(len(poses)))
     plist = [np.asarray(poses[k], np.float64) for k in keys]
@@ -115,12 +390,20 @@ def export_point_cloud(
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
     stride = max(1, int(stride))
     cam_lo = camera.resized(max(1, camera.width // stride), max(1, camera.height // stride))
-    render = _render_fn(source, near, far, n_samples, n_importance)
+    # fast + k colour samples: the colour of each output point is rendered once, after the filters
+    defer = fast and images is None and color_samples is not None
+    if fast:
+        # colour is needed only where the opacity test can pass, and not at all with images
+        render, field = _fast_render_fn(source, near, far, n_samples, n_importance,
+                                        color_min_acc=min_acc if images is None else float("inf"),
+                                        color_samples=color_samples, use_nodes=node_grid, defer_color=defer)
+    else:
+        render = _render_fn(source, near, far, n_samples, n_importance)
     renders = [render(p, cam_lo) for p in plist]
     centres = np.stack([p[:3, 3] for p in plist])
     uv = cam_lo.pixel_grid(dtype=torch.float64).numpy()
     dirs = np.stack([(uv[:, 0] - cam_lo.cx) / cam_lo.fx, (uv[:, 1] - cam_lo.cy) / cam_lo.fy, np.ones(len(uv))], -1)
-    all_p, all_c = [], []
+    all_p, all_c, all_v, all_x = [], [], [], []
     for i, (pose, rd) in enumerate(zip(plist, renders)):
         acc = rd["acc"].reshape(-1)
         dep = rd["depth"].reshape(-1)
@@ -134,8 +417,11 @@ def export_point_cloud(
             uv_full = np.stack([(uv[keep, 0] + 0.5) * stride - 0.5, (uv[keep, 1] + 0.5) * stride - 0.5], -1)
             col, _ = _lookup_nearest(ilist[i], uv_full)
             col = col.astype(np.float64)
+        elif defer:
+            col = np.zeros((len(pts), 3))
         else:
             col = rd["rgb"].reshape(-1, 3)[keep] * 255.0
+        pix = np.flatnonzero(keep)
         if min_consistent > 0 and len(plist) > 1:
             dist = np.linalg.norm(centres - centres[i], axis=1)
             dist[i] = np.inf
@@ -155,13 +441,50 @@ def export_point_cloud(
                     cons &= np.abs(cj.astype(np.float64) - col).mean(-1) <= photo_tol * 255
                 good += cons
             ok = good >= min_consistent
-            pts, col = pts[ok], col[ok]
+            pts, col, pix = pts[ok], col[ok], pix[ok]
         all_p.append(pts)
         all_c.append(col)
+        all_v.append(np.full(len(pix), i))
+        all_x.append(pix)
     if not all_p:
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
-    p, c = voxel_downsample(np.concatenate(all_p), np.concatenate(all_c), voxel)
-    return p, np.clip(np.round(c), 0, 255).astype(np.uint8)
+    if not defer:
+        p, c = voxel_downsample(np.concatenate(all_p), np.concatenate(all_c), voxel)
+        return p, np.clip(np.round(c), 0, 255).astype(np.uint8)
+    pts, views, pix = np.concatenate(all_p), np.concatenate(all_v), np.concatenate(all_x)
+    if voxel > 0 and len(pts):
+        inv, counts, first = _voxel_groups(pts, voxel)
+        p = np.stack([np.bincount(inv, weights=pts[:, a], minlength=len(counts)) for a in range(3)], -1) / counts[:, None]
+    else:
+        p, first = pts, np.arange(len(pts))
+    c = _deferred_colors(field, plist, dirs, renders, views[first], pix[first])
+    return p, np.clip(np.round(c * 255.0), 0, 255).astype(np.uint8)
+
+
+@torch.no_grad()
+def _deferred_colors(field, plist: list, dirs: np.ndarray, renders: list, views: np.ndarray, pix: np.ndarray,
+                     chunk: int = 65536) -> np.ndarray:
+    """Rendered colour (M, 3) in [0, 1] of pixel ``pix`` of view ``views`` from the deferred
+    colour samples (``color_t`` / ``color_w``) of :func:`render_view`."""
+    if len(views) == 0:
+        return np.zeros((0, 3))
+    ct = np.stack([r["color_t"].reshape(len(dirs), -1) for r in renders])[views, pix]  # (M, k)
+    cw = np.stack([r["color_w"].reshape(len(dirs), -1) for r in renders])[views, pix]
+    rot = np.stack([q[:3, :3] for q in plist])[views]
+    dw = np.einsum("mij,mj->mi", rot, dirs[pix])  # world ray directions (z-normalised)
+    org = np.stack([q[:3, 3] for q in plist])[views]
+    k = ct.shape[1]
+    out = np.zeros((len(views), 3))
+    for s in range(0, len(views), chunk):
+        sl = slice(s, s + chunk)
+        x = torch.as_tensor(org[sl, None, :] + ct[sl, :, None] * dw[sl, None, :], dtype=field.dtype, device=field.device)
+        vd = None
+        if field.cfg.view_dependent:
+            vd = torch.as_tensor(np.repeat(dw[sl] / np.linalg.norm(dw[sl], axis=1, keepdims=True), k, 0),
+                                 dtype=field.dtype, device=field.device)
+        c = field.color(x.reshape(-1, 3), vd).reshape(-1, k, 3).cpu().numpy().astype(np.float64)
+        out[sl] = (cw[sl, :, None] * c).sum(1)
+    return out
 
 
 @torch.no_grad()
@@ -174,19 +497,11 @@ def field_opacity_grid(field, aabb, resolution: int, chunk: int = 262144) -> tup
     """
     box = np.asarray(aabb.detach().cpu() if isinstance(aabb, Tensor) else aabb, np.float64).reshape(2, 3)
     r = int(resolution)
-    axes = [np.linspace(box[0, a], box[1, a], r) for a in range(3)]
     spacing = (box[1] - box[0]) / (r - 1)
     cell = float(spacing.mean())
-    alpha = np.empty(r ** 3, np.float32)
-    gx, gy, gz = np.meshgrid(*axes, indexing="ij")
-    pts = np.stack([gx.reshape(-1), gy.reshape(-1), gz.reshape(-1)], -1)
-    dev, dtype = field.device, field.dtype
-    for s in range(0, len(pts), chunk):
-        x = torch.as_tensor(pts[s:s + chunk], dtype=dtype, device=dev)
-        raw = field.density_raw(x)
-        a = raw_to_alpha(raw, torch.full_like(raw, cell), field.cfg.alpha_mode, field.cfg.density_shift)
-        alpha[s:s + chunk] = a.cpu().numpy()
-    return alpha.reshape(r, r, r), box[0], spacing
+    raw = torch.from_numpy(_node_raw(field, box, r, chunk)).to(field.dtype)
+    alpha = raw_to_alpha(raw, torch.full_like(raw, cell), field.cfg.alpha_mode, field.cfg.density_shift)
+    return alpha.numpy().astype(np.float32), box[0], spacing
 
 
 def export_mesh(

@@ -41,6 +41,8 @@ from typing import Optional
 
 import yaml
 
+from fmapping.config import read_yaml_mapping
+
 SECTIONS = ("mapper", "tracker", "launcher")
 EXTERNAL_SOURCE = "external"  # pose source and status name of an external producer (poses/external, status/external)
 
@@ -73,12 +75,7 @@ def split_config(path: Optional[str], out: Path) -> tuple[Optional[Path], Option
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"config file not found: {p}")
-    try:
-        data = yaml.safe_load(p.read_text()) or {}
-    except yaml.YAMLError as e:
-        raise ValueError(f"{p}: invalid YAML: {e}") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{p}: expected a mapping at the top level")
+    data = read_yaml_mapping(p)
     if not data or not set(data) <= set(SECTIONS):
         data = {"mapper": data}  # plain mapper overrides
     cdir = out / "config"
@@ -121,6 +118,44 @@ def _scene(out: Path, opts: LauncherOptions) -> Path:
           f"seed {opts.seed}) in {scene}", flush=True)
     generate_scene(scene, seed=opts.seed, frames=opts.frames, size=tuple(opts.size))
     return scene
+
+
+def scene_box(data: Path, mapper_overrides: dict) -> Optional[list]:
+    """The mapper's bounding box for the dataset the launcher plays, as ``fmapping map`` picks it
+    (the synthetic scene's box, else the depth images when the dataset has them - used only
+    for the box - else the frusta of *all* ground-truth poses),
+    or None when the dataset gives no hint (the mapper then bounds the frusta of its init frames,
+    which misses what later frames see)."""
+    from fmapping.config import merge
+    from fmapping.datasets import open_dataset
+    from fmapping.mapper import MapperConfig
+    from fmapping.pipeline import _scene_aabb
+
+    cfg = merge(MapperConfig(), mapper_overrides)
+    if cfg.bbox is not None:
+        return None
+    ds = open_dataset(data)
+    poses = [p for p in ds.gt_poses if p is not None] if ds.gt_poses else []
+    has_scene = isinstance(ds.meta, dict) and isinstance(ds.meta.get("scene"), dict)
+    if not poses and not has_scene:
+        return None
+    box = _scene_aabb(ds, merge(cfg, {"use_depth": True}), poses)  # depth only bounds the box here
+    return None if box is None else [[float(v) for v in box[0]], [float(v) for v in box[1]]]
+
+
+def with_scene_box(mapper_cfg: Optional[Path], data: Path, out: Path) -> Optional[Path]:
+    """Mapper YAML (written under OUT/config) = the user's mapper section + ``bbox`` from
+    :func:`scene_box` unless the user set one; unchanged when there is nothing to add."""
+    overrides = read_yaml_mapping(mapper_cfg) if mapper_cfg else {}
+    box = scene_box(data, overrides)
+    if box is None:
+        return mapper_cfg
+    # the box is already widened by the margin: keep bbox_margin out of it
+    path = out / "config" / "mapper.yaml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump({**overrides, "bbox": box}, sort_keys=False))
+    print(f"fmapping up: mapper box {box} (from the dataset)", flush=True)
+    return path
 
 
 class Proc:
@@ -212,13 +247,16 @@ def run_up(args) -> int:
     if not data.exists():
         raise FileNotFoundError(f"dataset folder not found: {data}")
     timeout = getattr(args, "timeout", None) or opts.timeout
-    ns = f"up{os.getpid()}"
+    ns = getattr(args, "ns", None) or f"up{os.getpid()}"
     mesh: list[str] = []  # endpoints of the processes started so far
+    # optional: endpoints every service also connects to, e.g. a monitoring session (bench/system.py)
+    extra_connect = [str(e) for e in (getattr(args, "connect_extra", None) or [])]
 
     def net() -> list[str]:
         """Listen on a fresh loopback port and connect to every process started before (explicit mesh)."""
         ep = f"tcp/127.0.0.1:{free_port()}"
-        argv = ["--listen", ep, "--ns", ns] + (["--connect", ",".join(mesh)] if mesh else [])
+        peers = extra_connect + mesh
+        argv = ["--listen", ep, "--ns", ns] + (["--connect", ",".join(peers)] if peers else [])
         mesh.append(ep)
         return argv
     env = dict(os.environ)
@@ -228,6 +266,7 @@ def run_up(args) -> int:
     py = [sys.executable, "-m"]
     threads = ["--threads", str(opts.threads)] if opts.threads else []
 
+    mapper_cfg = with_scene_box(mapper_cfg, data, out)
     mapper_argv = py + ["services.mapper", "--poses", poses, "--out", str(out)] + net() + threads
     if mapper_cfg:
         mapper_argv += ["--config", str(mapper_cfg)]

@@ -110,6 +110,27 @@ def sample_frames(images: Tensor, frame: Tensor, uv: Tensor) -> Tensor:
     return out
 
 
+def project_patches(points: Tensor, src: Tensor, images: Tensor, c2w: Tensor, camera: PinholeCamera, radius: int = 1,
+                    dilation: float = 1.0, min_z: float = 0.05) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """World points (M, 3) of frames ``src`` (M,) seen in every view ``images`` (V, H, W, C) /
+    ``c2w`` (V, 4, 4): returns pixel coordinates uv (V, M, 2), camera z (V, M), the mask (V, M)
+    of usable views (z > ``min_z``, the whole patch inside the image, not the point's own frame)
+    and the (2r+1)^2 patches around uv, offsets spaced ``dilation`` px (V, M, P, C).
+    Differentiable w.r.t. the points, poses and images (masked entries hold clamped samples)."""
+    v = images.shape[0]
+    w2c = se3_inverse(c2w)  # (V, 4, 4)
+    cam_pts = torch.einsum("vij,mj->vmi", w2c[:, :3, :3], points) + w2c[:, None, :3, 3]  # (V, M, 3)
+    z = cam_pts[..., 2]
+    zs = torch.where(z.abs() < 1e-6, torch.full_like(z, 1e-6), z)
+    uv = torch.stack([camera.fx * cam_pts[..., 0] / zs + camera.cx, camera.fy * cam_pts[..., 1] / zs + camera.cy], -1)
+    off = patch_offsets(radius, dilation, device=points.device, dtype=uv.dtype)  # (P, 2)
+    mask = (z > min_z) & camera.in_image(uv, margin=radius * dilation)
+    mask &= src[None, :] != torch.arange(v, device=points.device)[:, None]
+    m, p = uv.shape[1], off.shape[0]
+    patches = sample_views(images, (uv[:, :, None, :] + off).reshape(v, m * p, 2)).reshape(v, m, p, -1)
+    return uv, z, mask, patches
+
+
 @dataclass
 class WarpResult:
     loss: Tensor  # scalar
@@ -156,26 +177,17 @@ def warping_loss(
     """
     n = depth.shape[0]
     v = images.shape[0]
-    dev, dt = depth.device, images.dtype
+    dev = depth.device
     if c2w.shape != (v, 4, 4):
         raise ValueError(f"warping_loss: c2w must be ({v}, 4, 4) for {v} images, got {tuple(c2w.shape)}")
     pts = origins + dirs * depth[:, None]  # (N, 3) world
-    w2c = se3_inverse(c2w)  # (V, 4, 4)
-    cam_pts = torch.einsum("vij,nj->vni", w2c[:, :3, :3], pts) + w2c[:, None, :3, 3]  # (V, N, 3)
-    z = cam_pts[..., 2]
-    zs = torch.where(z.abs() < 1e-6, torch.full_like(z, 1e-6), z)
-    uv_t = torch.stack([camera.fx * cam_pts[..., 0] / zs + camera.cx, camera.fy * cam_pts[..., 1] / zs + camera.cy], -1)
-    off = patch_offsets(radius, dilation, device=dev, dtype=uv_t.dtype)  # (P, 2)
-    p = off.shape[0]
-    margin = radius * dilation
-    mask = (z > min_z) & camera.in_image(uv_t, margin=margin)  # (V, N)
-    mask &= src[None, :] != torch.arange(v, device=dev)[:, None]
+    # target patches tgt (V, N, P, C)
+    uv_t, z, mask, tgt = project_patches(pts, src, images, c2w, camera, radius, dilation, min_z)
     if view_depths is not None:
         d_at = sample_views(view_depths[..., None], uv_t.detach())[..., 0]  # (V, N)
         mask &= ~((d_at > 0) & (z.detach() > d_at * (1 + occlusion_tol)))
-    # target patches (V, N, P, C)
-    tgt = sample_views(images, (uv_t[:, :, None, :] + off).reshape(v, n * p, 2)).reshape(v, n, p, -1)
     if ref_colors is None:
+        off = patch_offsets(radius, dilation, device=dev, dtype=uv_t.dtype)  # (P, 2)
         ref_colors = sample_frames(images, src, uv[:, None, :] + off)  # (N, P, C)
     err = (tgt - ref_colors[None]).abs().mean((-1, -2))  # (V, N)
     err = err.T  # (N, V)
@@ -226,18 +238,9 @@ def sample_consistency_cost(
         n, s, _ = points.shape
         v = images.shape[0]
         dev = points.device
-        w2c = se3_inverse(c2w)
-        flat = points.reshape(-1, 3)
-        cam_pts = torch.einsum("vij,mj->vmi", w2c[:, :3, :3], flat) + w2c[:, None, :3, 3]  # (V, NS, 3)
-        z = cam_pts[..., 2]
-        zs = torch.where(z.abs() < 1e-6, torch.full_like(z, 1e-6), z)
-        uv_t = torch.stack([camera.fx * cam_pts[..., 0] / zs + camera.cx, camera.fy * cam_pts[..., 1] / zs + camera.cy], -1)
-        off = patch_offsets(radius, dilation, device=dev, dtype=uv_t.dtype)
-        p = off.shape[0]
-        mask = (z > min_z) & camera.in_image(uv_t, margin=radius * dilation)
-        src_rep = src[:, None].expand(n, s).reshape(-1)
-        mask &= src_rep[None, :] != torch.arange(v, device=dev)[:, None]
-        tgt = sample_views(images, (uv_t[:, :, None, :] + off).reshape(v, -1, 2)).reshape(v, n, s, p, -1)
+        _, _, mask, tgt = project_patches(points.reshape(-1, 3), src[:, None].expand(n, s).reshape(-1), images, c2w,
+                                          camera, radius, dilation, min_z)  # (V, NS), (V, NS, P, C)
+        tgt = tgt.reshape(v, n, s, tgt.shape[2], -1)
         err = (tgt - ref_colors[None, :, None]).abs().mean((-1, -2)).reshape(v, -1).T  # (NS, V)
         mask = mask.T
         nvalid = mask.sum(-1)

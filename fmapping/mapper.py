@@ -424,10 +424,10 @@ class Mapper:
 
     def _make_optimizer(self) -> None:
         cfg = self.cfg
-        groups = [
-            {"params": list(self.field.grid_parameters()), "lr": cfg.lr_grid, "name": "grid"},
-            {"params": list(self.field.decoder_parameters()), "lr": cfg.lr_decoder, "name": "decoder"},
-        ]
+        # one "grid" group per (params, lr multiplier) of the field (cp / vm / mlp: one, x1)
+        groups = [{"params": list(ps), "lr": cfg.lr_grid * scale, "name": "grid"}
+                  for ps, scale in self.field.grid_param_groups()]
+        groups.append({"params": list(self.field.decoder_parameters()), "lr": cfg.lr_decoder, "name": "decoder"})
         if self._pose_corr is not None:
             groups.append({"params": [self._pose_corr], "lr": cfg.lr_pose, "name": "pose"})
         groups = [g for g in groups if g["params"]]
@@ -777,7 +777,7 @@ class Mapper:
         """Everything needed to resume exactly (tensors and plain python only)."""
         return {
             "version": STATE_VERSION,
-            "config": _plain(dataclasses.asdict(self.cfg)),
+            "config": plain_tree(dataclasses.asdict(self.cfg)),
             "camera": self.camera.to_dict(),
             "aabb": None if self.aabb is None else self.aabb.detach().cpu().clone(),
             "aabb_given": None if self._aabb_given is None else self._aabb_given.clone(),
@@ -861,12 +861,12 @@ def _orthonormalize(p: Tensor) -> Tensor:
     return out
 
 
-def _plain(x):
+def plain_tree(x):
     """Dataclass-asdict output -> plain python (tuples to lists) for weights_only loading."""
     if isinstance(x, dict):
-        return {k: _plain(v) for k, v in x.items()}
+        return {k: plain_tree(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
+        return [plain_tree(v) for v in x]
     return x
 
 

@@ -11,6 +11,8 @@ Conventions (stated once, used by every function here):
   returns ``(s, R, t)`` minimising ``sum |gt - (s R est + t)|^2``. Hence an
   estimate that is twice as large as the ground truth gets ``scale = 0.5``.
   An aligned pose has rotation ``R @ R_est`` and translation ``s R t_est + t``.
+  Orientation errors that must not depend on the path's shape use their own,
+  orientation-only alignment (:func:`align_rotations`, :func:`rotation_errors_deg`).
 * Reconstruction (NICE-SLAM protocol): both surfaces are sampled (meshes
   area-weighted, clouds by random subset), then
   accuracy = mean distance from predicted samples to their nearest GT sample,
@@ -32,7 +34,7 @@ from scipy.spatial import cKDTree
 
 __all__ = [
     "sample_surface", "recon_metrics", "eval_recon_files",
-    "umeyama", "align_trajectory", "ate", "rpe", "eval_traj_files",
+    "umeyama", "align_trajectory", "align_rotations", "rotation_errors_deg", "ate", "rpe", "eval_traj_files",
     "psnr", "ssim", "depth_l1", "rotation_angle_deg",
 ]
 
@@ -238,20 +240,75 @@ def align_trajectory(est_c2w, gt_c2w, mode: str = "sim3") -> tuple[np.ndarray, t
     return out, (s, rot, t)
 
 
+def align_rotations(est_rot, gt_rot) -> np.ndarray:
+    """Orientation-only best fit: the rotation ``R`` minimising ``sum_i |R R_est_i - R_gt_i|_F^2``.
+
+    Since ``|R A - B|_F = |R - B A^T|_F`` this is the chordal L2 mean of
+    ``R_gt_i R_est_i^T``: with ``U S V^T = sum_i R_gt_i R_est_i^T``,
+    ``R = U diag(1, 1, det(U V^T)) V^T`` (a proper rotation). Inputs (N, 3, 3), N >= 1."""
+    e, g = _np(est_rot), _np(gt_rot)
+    if e.ndim != 3 or e.shape[1:] != (3, 3) or e.shape != g.shape:
+        raise ValueError(f"align_rotations: expected two (N, 3, 3) stacks of equal shape, got {e.shape} and {g.shape}")
+    if len(e) == 0:
+        raise ValueError("align_rotations: no rotations")
+    u, _, vt = np.linalg.svd((g @ np.swapaxes(e, -1, -2)).sum(0))
+    d = np.ones(3)
+    d[2] = 1.0 if np.linalg.det(u @ vt) >= 0 else -1.0
+    return (u * d) @ vt
+
+
+def rotation_errors_deg(est_c2w, gt_c2w, align: str = "fit") -> np.ndarray:
+    """Per-pose orientation error (degrees): angle of ``R_gt_i^T R_align R_est_i``.
+
+    ``align``: ``"fit"`` (``R_align`` from :func:`align_rotations`, uses orientations
+    only), ``"first"`` (``R_align = R_gt_0 R_est_0^T``: the first poses agree) or
+    ``"none"`` (identity). Unlike the rotation error after a position-based
+    (Umeyama) alignment, none of these depends on the shape of the path, so they
+    stay meaningful for straight or rotation-only trajectories."""
+    est, gt = _poses(est_c2w, "rotation_errors est"), _poses(gt_c2w, "rotation_errors gt")
+    if len(est) != len(gt):
+        raise ValueError(f"rotation_errors: {len(est)} estimated vs {len(gt)} GT poses")
+    re, rg = est[:, :3, :3], gt[:, :3, :3]
+    if align == "fit":
+        ra = align_rotations(re, rg)
+    elif align == "first":
+        ra = rg[0] @ re[0].T
+    elif align == "none":
+        ra = np.eye(3)
+    else:
+        raise ValueError(f"rotation_errors: align must be 'fit', 'first' or 'none', got {align!r}")
+    return rotation_angle_deg(np.swapaxes(rg, -1, -2) @ ra @ re)
+
+
 def ate(est_c2w, gt_c2w, align: str = "sim3") -> dict:
     """Absolute trajectory error of corresponding poses after :func:`align_trajectory`.
 
     Returns ``rmse_m``, ``mean_m``, ``median_m``, ``max_m`` of the position
     errors, ``scale`` (the alignment scale; 1 unless sim3), ``rot_err_mean_deg``
-    (mean angle of ``R_gt^T R_aligned``), ``align`` and ``n``."""
+    (mean angle of ``R_gt^T R_aligned``), ``align`` and ``n``.
+
+    ``rot_err_mean_deg`` inherits the rotation of the *position* alignment, which is
+    ill-posed when the camera centres are (nearly) collinear or coincident (a
+    straight run, a rotation-dominant clip): the spin about the line is then fixed
+    by noise and the number can be tens of degrees for a good estimate. The
+    well-posed orientation errors below use :func:`rotation_errors_deg` instead and
+    do not depend on ``align``: ``rot_fit_rmse_deg`` / ``rot_fit_mean_deg`` /
+    ``rot_fit_max_deg`` after the orientation-only best fit (:func:`align_rotations`)
+    and ``rot_first_mean_deg`` with the first orientations made equal. For the
+    frame-to-frame rotation drift see :func:`rpe` (``rot_rmse_deg``)."""
     aligned, (s, _, _) = align_trajectory(est_c2w, gt_c2w, align)
     gt = _np(gt_c2w)
     e = np.linalg.norm(aligned[:, :3, 3] - gt[:, :3, 3], axis=1)
     rel = np.swapaxes(gt[:, :3, :3], -1, -2) @ aligned[:, :3, :3]
+    fit = rotation_errors_deg(est_c2w, gt, "fit")
     return {
         "rmse_m": float(np.sqrt(np.mean(e ** 2))), "mean_m": float(e.mean()),
         "median_m": float(np.median(e)), "max_m": float(e.max()), "scale": float(s),
-        "rot_err_mean_deg": float(rotation_angle_deg(rel).mean()), "align": align, "n": int(len(e)),
+        "rot_err_mean_deg": float(rotation_angle_deg(rel).mean()),
+        "rot_fit_rmse_deg": float(np.sqrt(np.mean(fit ** 2))), "rot_fit_mean_deg": float(fit.mean()),
+        "rot_fit_max_deg": float(fit.max()),
+        "rot_first_mean_deg": float(rotation_errors_deg(est_c2w, gt, "first").mean()),
+        "align": align, "n": int(len(e)),
     }
 
 
@@ -309,7 +366,9 @@ def eval_traj_files(est, gt, align: str = "sim3", max_dt: float = 0.02, delta: i
     (one-to-one), and return ``{"ate": ate(...), "rpe": rpe(...), "n_est",
     "n_gt", "n_matched", "est", "gt", "align", "max_dt"}``. RPE is computed on
     the *aligned* estimate (so a sim3 alignment fixes the scale of a monocular
-    run) over consecutive matched poses. Fewer than 3 matches is a ValueError."""
+    run) over consecutive matched poses. The well-posed orientation errors are
+    ``ate.rot_fit_*`` / ``ate.rot_first_mean_deg`` (see :func:`ate`) and
+    ``rpe.rot_rmse_deg``. Fewer than 3 matches is a ValueError."""
     from fmapping.trajectory import read_tum_trajectory
 
     ets, ec = read_tum_trajectory(est)

@@ -109,20 +109,100 @@ def _heldout_psnr(mapper: Mapper, ds, used: list, n: int = 8) -> Optional[float]
     return float(np.mean(vals))
 
 
+# ----------------------------------------------------------------------------- job I/O (shared with fmapping.slam)
+def open_job_dataset(args):
+    """The dataset of a job: ``args.data`` with the optional ``args.camera`` / ``args.max_frames``.
+    A dataset without frames is a ValueError naming the folder."""
+    from fmapping.datasets import open_dataset
+
+    ds = open_dataset(args.data, camera=getattr(args, "camera", None), max_frames=getattr(args, "max_frames", None))
+    if len(ds) == 0:
+        raise ValueError(f"dataset {args.data} has no frames")
+    return ds
+
+
+def write_map_outputs(mapper: Mapper, poses: dict, camera, out: Path, *, near: float, far: float,
+                      cloud_samples: Optional[tuple[int, int]] = None, mesh_samples: tuple[int, int] = (48, 16),
+                      mesh_resolution: int = MESH_RESOLUTION, center: Optional[np.ndarray] = None,
+                      scale: float = 1.0) -> dict:
+    """Export the map seen from ``poses`` (dict frame id -> c2w) into ``out/map.ply`` (coloured
+    point cloud, :func:`fmapping.export.export_point_cloud`, rendered with ``cloud_samples``
+    = (coarse, fine) samples per ray, the exporter's defaults when None) and ``out/mesh.ply`` (:func:`fmapping.export.export_mesh`
+    on a ``mesh_resolution``^3 grid, culled with depth rendered with ``mesh_samples``).
+    With ``center`` both are written through the similarity ``x -> center + scale (x - center)``
+    (the SLAM output frame). Returns ``{"points", "mesh_vertices", "mesh_faces", "seconds"}``."""
+    from fmapping.export import export_mesh, export_point_cloud
+    from fmapping.ply import write_ply
+
+    t0 = time.perf_counter()
+    kw = {} if cloud_samples is None else {"n_samples": cloud_samples[0], "n_importance": cloud_samples[1]}
+    pts, cols = export_point_cloud(mapper, poses, camera, near=near, far=far, **kw)
+
+    def render_fn(c2w, cam):
+        r = mapper.render(c2w, cam, samples=mesh_samples)
+        return {"depth": r["depth_normalized"], "acc": r["acc"]}
+
+    verts, faces, vcols = export_mesh(mapper.field, mapper.aabb, mesh_resolution, poses, camera,
+                                      render=render_fn, near=near, far=far)
+    if center is not None:
+        c = np.asarray(center, np.float64)
+        if len(pts):
+            pts = c + scale * (np.asarray(pts) - c)
+        if len(verts):
+            verts = c + scale * (np.asarray(verts) - c)
+    write_ply(out / "map.ply", pts, cols)
+    write_ply(out / "mesh.ply", verts, vcols, faces)
+    return {"points": int(len(pts)), "mesh_vertices": int(len(verts)), "mesh_faces": int(len(faces)),
+            "seconds": time.perf_counter() - t0}
+
+
+def recon_stats(ds, out: Path, mesh: bool = False) -> dict:
+    """Reconstruction metrics (NICE-SLAM protocol, 200k samples, 5 cm) of ``out/map.ply`` - and of
+    ``out/mesh.ply`` with ``mesh`` - against the dataset's visible GT cloud
+    (``meta["gt_visible_cloud"]``): ``{"recon": ..., "recon_mesh": ...}``, ``{}`` without one."""
+    gt_cloud = ds.meta.get("gt_visible_cloud") if isinstance(ds.meta, dict) else None
+    if not gt_cloud or not Path(gt_cloud).is_file():
+        return {}
+    from fmapping.metrics import eval_recon_files
+
+    res = {"recon": eval_recon_files(str(out / "map.ply"), gt_cloud, samples=200_000, threshold=0.05, seed=0)}
+    if mesh:
+        res["recon_mesh"] = eval_recon_files(str(out / "mesh.ply"), gt_cloud, samples=200_000, threshold=0.05, seed=0)
+    return res
+
+
+def write_stats(out: Path, stats: dict, summary: dict) -> dict:
+    """Copy the main reconstruction metrics (if any) into ``summary``, store it as
+    ``stats["summary"]`` and write ``out/stats.json``; returns ``stats``."""
+    if "recon" in stats:
+        summary.update({k: stats["recon"][k] for k in ("accuracy_cm", "completion_cm", "completion_ratio")
+                        if k in stats["recon"]})
+    stats["summary"] = summary
+    (out / "stats.json").write_text(json.dumps(stats, indent=2, default=json_default))
+    return stats
+
+
+def json_default(o):
+    """``json.dumps`` fallback: numpy scalars and arrays, paths, anything else as ``str``."""
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    return str(o)
+
+
+# ----------------------------------------------------------------------------- the mapping job
 def run_map(args) -> dict:
     """Run the mapping job (see the module docstring); returns the stats dict with a ``summary``."""
     import torch
     from tqdm import tqdm
 
-    from fmapping.datasets import open_dataset
-    from fmapping.export import export_mesh, export_point_cloud
-    from fmapping.ply import write_ply
     from fmapping.trajectory import write_tum_trajectory
 
     t_start = time.perf_counter()
-    ds = open_dataset(args.data, camera=getattr(args, "camera", None), max_frames=getattr(args, "max_frames", None))
-    if len(ds) == 0:
-        raise ValueError(f"dataset {args.data} has no frames")
+    ds = open_job_dataset(args)
     cfg = build_config(args)
     poses = _pose_source(ds, getattr(args, "poses", "gt"))
     aabb = _scene_aabb(ds, cfg, poses)
@@ -148,20 +228,12 @@ def run_map(args) -> dict:
     # every EXPORT_EVERY-th frame (not only keyframes): views seen briefly between keyframes count too
     exp_poses = {k: all_poses[k] for k in sorted(all_poses)[::EXPORT_EVERY]}
     samples = (cfg.n_coarse, max(cfg.n_fine, 16))
-    pts, cols = export_point_cloud(mapper, exp_poses, ds.camera, near=cfg.near, far=cfg.far,
-                                   n_samples=samples[0], n_importance=samples[1])
-    write_ply(out / "map.ply", pts, cols)
-
-    def render_fn(c2w, cam):
-        r = mapper.render(c2w, cam, samples=samples)
-        return {"depth": r["depth_normalized"], "acc": r["acc"]}
-
-    verts, faces, vcols = export_mesh(mapper.field, mapper.aabb, MESH_RESOLUTION, exp_poses, ds.camera,
-                                      render=render_fn, near=cfg.near, far=cfg.far)
-    write_ply(out / "mesh.ply", verts, vcols, faces)
+    export = write_map_outputs(mapper, exp_poses, ds.camera, out, near=cfg.near, far=cfg.far,
+                               cloud_samples=samples, mesh_samples=samples)
     ts = mapper.frame_timestamps()
     write_tum_trajectory(out / "traj.txt", np.array([ts[k] for k in all_poses]), np.stack(list(all_poses.values())))
     t_export = time.perf_counter() - t0
+    export["seconds"] = t_export
 
     mstats = mapper.stats()
     stats = {
@@ -172,20 +244,12 @@ def run_map(args) -> dict:
         "frames_without_pose": skipped,
         "aabb": mapper.aabb.cpu().tolist(),
         "mapper": mstats,
-        "export": {"points": int(len(pts)), "mesh_vertices": int(len(verts)), "mesh_faces": int(len(faces)),
-                   "seconds": t_export},
+        "export": export,
         "seconds": {"mapping": t_map, "export": t_export, "total": time.perf_counter() - t_start},
         "torch_threads": torch.get_num_threads(),
     }
     stats["psnr_heldout"] = _heldout_psnr(mapper, ds, used)
-    gt_cloud = ds.meta.get("gt_visible_cloud") if isinstance(ds.meta, dict) else None
-    if gt_cloud and Path(gt_cloud).is_file():
-        from fmapping.metrics import eval_recon_files
-
-        stats["recon"] = eval_recon_files(str(out / "map.ply"), gt_cloud, samples=200_000, threshold=0.05, seed=0)
-        if len(faces):
-            stats["recon_mesh"] = eval_recon_files(str(out / "mesh.ply"), gt_cloud, samples=200_000, threshold=0.05,
-                                                   seed=0)
+    stats.update(recon_stats(ds, out, mesh=export["mesh_faces"] > 0))
     summary = {
         "out": str(out),
         "frames": len(used),
@@ -195,25 +259,10 @@ def run_map(args) -> dict:
         "init_seconds": mstats["init_seconds"],
         "final_seconds": mstats["final_seconds"],
         "total_seconds": stats["seconds"]["total"],
-        "points": int(len(pts)),
+        "points": export["points"],
         "psnr_heldout": stats["psnr_heldout"],
     }
-    if "recon" in stats:
-        summary.update({k: stats["recon"][k] for k in ("accuracy_cm", "completion_cm", "completion_ratio")
-                        if k in stats["recon"]})
-    stats["summary"] = summary
-    (out / "stats.json").write_text(json.dumps(stats, indent=2, default=_json_default))
-    return stats
-
-
-def _json_default(o):
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    return str(o)
+    return write_stats(out, stats, summary)
 
 
 def run_demo(args) -> int:
@@ -231,7 +280,7 @@ def run_demo(args) -> int:
                                field=None, use_depth=False, device="auto", camera=None, max_frames=None)
     stats = run_map(margs)
     s = stats["summary"]
-    print(json.dumps(s, indent=2, default=_json_default))
+    print(json.dumps(s, indent=2, default=json_default))
     if "recon" in stats:
         r = stats["recon"]
         print(f"reconstruction vs visible GT: accuracy {r['accuracy_cm']:.2f} cm, completion {r['completion_cm']:.2f} cm, "

@@ -7,6 +7,8 @@
 and writes into ``args.out``: ``map.ply`` (coloured point cloud), ``mesh.ply``,
 ``traj.txt`` (TUM format, every frame), ``stats.json`` (per-frame tracking ms,
 per-window mapping seconds, tracking-loss events, ATE against the GT when it exists).
+``--no-export`` (``slam.export: false``) skips ``map.ply`` / ``mesh.ply`` (and the
+reconstruction metrics); ``traj.txt`` and ``stats.json`` are still written.
 
 Pose sources (``args.poses``):
 
@@ -51,7 +53,6 @@ to the map front end. Tracking loss is reported per frame in ``tracking_loss_eve
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -62,6 +63,7 @@ import numpy as np
 
 from fmapping.config import load_config, to_dict
 from fmapping.mapper import Mapper, MapperConfig
+from fmapping.pipeline import MESH_RESOLUTION, open_job_dataset, recon_stats, write_map_outputs, write_stats
 from fmapping.tracking.frontend import DirectTracker, TrackerConfig
 from fmapping.tracking.mapview import MapView, MapViewConfig
 from fmapping.tracking.mono import MonoConfig, MonoFrontend
@@ -94,6 +96,7 @@ class SlamConfig:
     init_retry_frames: int = 10
     refresh_every_window: bool = True  # re-render the reference depth after each mapping window
     feed_lost_frames: bool = False  # give the mapper frames whose tracking was lost (at the predicted pose)
+    export: bool = True  # write map.ply / mesh.ply at the end (``--no-export`` turns it off)
 
     def validate(self) -> None:
         if self.frontend not in ("mono", "map"):
@@ -120,6 +123,8 @@ def build_slam_config(args) -> SlamConfig:
         # external poses are trusted; with sensor depth the bootstrap is RGB-D odometry, already metric
         m = dataclasses.replace(m, optimize_init_poses=False)
     cfg = dataclasses.replace(cfg, mapper=m)
+    if getattr(args, "export", True) is False:  # --no-export
+        cfg = dataclasses.replace(cfg, export=False)
     cfg.validate()
     return cfg
 
@@ -172,7 +177,8 @@ def _ate_block(est: np.ndarray, gt: list) -> Optional[dict]:
     for a in ("se3", "sim3", "none"):
         try:
             r = ate(e, g, a)
-            res[a] = {k: r[k] for k in ("rmse_m", "mean_m", "max_m", "rot_err_mean_deg", "scale")}
+            res[a] = {k: r[k] for k in ("rmse_m", "mean_m", "max_m", "rot_err_mean_deg", "rot_fit_mean_deg",
+                                        "rot_fit_rmse_deg", "scale")}
         except ValueError as err:
             res[a] = {"error": str(err)}
     return res
@@ -599,57 +605,27 @@ class SlamRun:
         return np.stack(out)
 
 
-def _json_default(o):
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    return str(o)
-
-
 def _export(run: SlamRun, out: Path) -> dict:
-    """map.ply and mesh.ply in the output frame (scaled about frame 0 by the anchor)."""
-    from fmapping.export import export_mesh, export_point_cloud
-    from fmapping.ply import write_ply
-
+    """map.ply and mesh.ply from the keyframe and window views, in the output frame (scaled
+    about frame 0 by the anchor)."""
     m = run.mapper
     cfg = run.cfg.mapper
-    t0 = time.perf_counter()
     poses = m.frame_poses()
     kf = sorted(set(m.keyframe_ids()) | set(m.window_ids()))
     kf_poses = {k: poses[k] for k in kf if k in poses}
-    pts, cols = export_point_cloud(m, kf_poses, run.camera, near=cfg.near, far=cfg.far)
-
-    def render_fn(c2w, cam):
-        r = m.render(c2w, cam, samples=(48, 16))
-        return {"depth": r["depth"] / np.maximum(r["acc"], 1e-6), "acc": r["acc"]}
-
-    verts, faces, vcols = export_mesh(m.field, m.aabb, 160, kf_poses, run.camera, render=render_fn,
-                                      near=cfg.near, far=cfg.far)
-    c, s = run.c2w0[:3, 3], run.scale
-    if len(pts):
-        pts = c + s * (np.asarray(pts) - c)
-    if len(verts):
-        verts = c + s * (np.asarray(verts) - c)
-    write_ply(out / "map.ply", pts, cols)
-    write_ply(out / "mesh.ply", verts, vcols, faces)
-    return {"points": int(len(pts)), "mesh_vertices": int(len(verts)), "mesh_faces": int(len(faces)),
-            "seconds": time.perf_counter() - t0}
+    return write_map_outputs(m, kf_poses, run.camera, out, near=cfg.near, far=cfg.far,
+                             mesh_samples=(48, 16), mesh_resolution=MESH_RESOLUTION,
+                             center=run.c2w0[:3, 3], scale=run.scale)
 
 
 def run_slam(args) -> dict:
     """Run the SLAM loop (see the module docstring); returns the stats dict with a ``summary``."""
     import torch
 
-    from fmapping.datasets import open_dataset
     from fmapping.trajectory import write_tum_trajectory
 
     t_start = time.perf_counter()
-    ds = open_dataset(args.data, camera=getattr(args, "camera", None), max_frames=getattr(args, "max_frames", None))
-    if len(ds) == 0:
-        raise ValueError(f"dataset {args.data} has no frames")
+    ds = open_job_dataset(args)
     cfg = build_slam_config(args)
     poses_mode = getattr(args, "poses", "photometric") or "photometric"
     out = Path(args.out)
@@ -663,7 +639,7 @@ def run_slam(args) -> dict:
     t_loop = time.perf_counter() - t_start
     est = run.output_poses()
     write_tum_trajectory(out / "traj.txt", np.asarray(ds.timestamps, np.float64), est)
-    export = _export(run, out) if getattr(args, "export", True) else None
+    export = _export(run, out) if cfg.export and run.mapper is not None else None
 
     ms = np.array([run.track_ms[i] for i in sorted(run.track_ms)], np.float64)
     track_ms_after_init = np.array([run.track_info[i]["ms"] for i in sorted(run.track_info)], np.float64)
@@ -691,11 +667,8 @@ def run_slam(args) -> dict:
     }
     ate_res = _ate_block(est, list(ds.gt_poses)) if run.has_gt else None
     stats["ate"] = ate_res
-    gt_cloud = ds.meta.get("gt_visible_cloud") if isinstance(ds.meta, dict) else None
-    if export is not None and gt_cloud and Path(gt_cloud).is_file() and export["points"] > 0:
-        from fmapping.metrics import eval_recon_files
-
-        stats["recon"] = eval_recon_files(str(out / "map.ply"), gt_cloud, samples=200_000, threshold=0.05, seed=0)
+    if export is not None and export["points"] > 0:
+        stats.update(recon_stats(ds, out))
     summary = {
         "out": str(out),
         "poses": poses_mode,
@@ -719,9 +692,6 @@ def run_slam(args) -> dict:
             if "rmse_m" in ate_res.get(a, {}):
                 summary[f"ate_{a}_rmse_m"] = ate_res[a]["rmse_m"]
                 summary[f"ate_{a}_rot_deg"] = ate_res[a]["rot_err_mean_deg"]
-    if "recon" in stats:
-        summary.update({k: stats["recon"][k] for k in ("accuracy_cm", "completion_cm", "completion_ratio")
-                        if k in stats["recon"]})
-    stats["summary"] = summary
-    (out / "stats.json").write_text(json.dumps(stats, indent=2, default=_json_default))
-    return stats
+                # orientation-only fit: the same for every position alignment, well posed on straight runs
+                summary.setdefault("ate_rot_fit_deg", ate_res[a]["rot_fit_mean_deg"])
+    return write_stats(out, stats, summary)

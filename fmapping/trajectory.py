@@ -1,4 +1,5 @@
-"""TUM-format trajectory files (``timestamp tx ty tz qx qy qz qw``) and timestamp association.
+"""TUM-format trajectory files (``timestamp tx ty tz qx qy qz qw``), timestamp association and
+pose interpolation at arbitrary timestamps.
 
 These files are what the evo tools, ORB-SLAM and kiss-icp exchange; poses are
 camera-to-world (see :mod:`fmapping.geometry`).
@@ -78,3 +79,65 @@ def associate(query: np.ndarray, reference: np.ndarray, max_dt: float = 0.02) ->
         j = np.where(left_better, j - 1, j)
     idx = order[j]
     return np.where(np.abs(reference[idx] - query) <= max_dt, idx, -1).astype(np.int64)
+
+
+def interpolate_poses(query, ref_ts, ref_c2w, max_dt: float = 0.02,
+                      nearest_fallback: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Poses at ``query`` timestamps from a sampled trajectory ``(ref_ts, ref_c2w)``.
+
+    For each query time ``q`` with bracketing samples ``t_a <= q <= t_b``:
+
+    * ``"interpolated"`` when ``t_b - t_a <= max_dt`` (a query equal to a sample has
+      ``t_a = t_b = q`` and gets that sample exactly): translation linear in time,
+      rotation on the geodesic (slerp) ``R_a exp(w log(R_a^T R_b))``, ``w = (q - t_a) / (t_b - t_a)``;
+    * otherwise (a gap in the reference, or ``q`` outside its time range; no
+      extrapolation) ``"nearest"``: the nearest sample when it is within ``max_dt``
+      (TUM ``associate.py`` behaviour, for references sampled about as sparsely as the
+      queries) and ``nearest_fallback`` is on;
+    * otherwise ``"none"``.
+
+    Returns ``(c2w (N, 4, 4) float64, NaN where "none"; how (N,) str array)``.
+    """
+    from fmapping.geometry import so3_exp, so3_log
+
+    q = np.asarray(query, np.float64).reshape(-1)
+    ts = np.asarray(ref_ts, np.float64).reshape(-1)
+    poses = np.asarray(ref_c2w, np.float64)
+    if poses.shape != (len(ts), 4, 4):
+        raise ValueError(f"interpolate_poses: {len(ts)} timestamps but poses of shape {poses.shape} "
+                         f"(expected ({len(ts)}, 4, 4))")
+    if max_dt < 0:
+        raise ValueError(f"interpolate_poses: max_dt must be >= 0 seconds, got {max_dt}")
+    out = np.full((len(q), 4, 4), np.nan)
+    how = np.full(len(q), "none", dtype=object)
+    if len(ts) == 0 or len(q) == 0:
+        return out, how.astype(str)
+    order = np.argsort(ts, kind="stable")
+    ts, poses = ts[order], poses[order]
+    n = len(ts)
+    hi = np.searchsorted(ts, q, side="left")  # first sample at or after q
+    exact = (hi < n) & (ts[np.minimum(hi, n - 1)] == q)
+    lo = np.where(exact, hi, hi - 1)
+    inside = (lo >= 0) & (hi < n)
+    lo_c, hi_c = np.clip(lo, 0, n - 1), np.clip(hi, 0, n - 1)
+    gap = ts[hi_c] - ts[lo_c]
+    interp = inside & (gap <= max_dt)
+    if interp.any():
+        a, b = poses[lo_c[interp]], poses[hi_c[interp]]
+        g = gap[interp]
+        w = np.where(g > 0, (q[interp] - ts[lo_c[interp]]) / np.where(g > 0, g, 1.0), 0.0)
+        rel = np.swapaxes(a[:, :3, :3], -1, -2) @ b[:, :3, :3]
+        step = so3_exp(torch.from_numpy(w)[:, None] * so3_log(torch.from_numpy(rel))).numpy()
+        res = np.zeros_like(a)
+        res[:, :3, :3] = a[:, :3, :3] @ step
+        res[:, :3, 3] = a[:, :3, 3] + w[:, None] * (b[:, :3, 3] - a[:, :3, 3])
+        res[:, 3, 3] = 1.0
+        out[interp] = res
+        how[interp] = "interpolated"
+    if nearest_fallback and (~interp).any():
+        j = associate(q[~interp], ts, max_dt)
+        rows = np.flatnonzero(~interp)
+        ok = j >= 0
+        out[rows[ok]] = poses[j[ok]]
+        how[rows[ok]] = "nearest"
+    return out, how.astype(str)

@@ -1,7 +1,9 @@
 """Plumbing shared by the services: zenoh configuration and sessions, bounded inboxes,
-status counters and heartbeats, signal handling.
+status counters and heartbeats, signal handling, and what the zenoh-free service cores share
+(:class:`ServiceCore`: bad-input accounting, the stream camera check).
 
-Only ``services/`` imports zenoh; the library (``fmapping``) never does. Every service
+Only ``services/`` imports zenoh; the library (``fmapping``) never does, and neither do the
+service cores (this module imports zenoh only when a session or config is made). Every service
 follows the same shape: zenoh callbacks do no work beyond copying the payload into a
 bounded, drop-oldest :class:`Inbox`; one worker loop (the main thread) decodes with
 :mod:`fmapping.protocol`, calls the library and publishes results. A message that fails
@@ -25,12 +27,15 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterable, Optional
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Optional, Sequence
 
-import yaml
-import zenoh
+import numpy as np
+from fmapping.config import read_yaml_mapping
 
 from fmapping import protocol as P
+
+if TYPE_CHECKING:
+    import zenoh
 
 log = logging.getLogger("fmapping.services")
 
@@ -41,6 +46,25 @@ def _split(values: Optional[Iterable[str]]) -> list[str]:
     for v in values or []:
         out += [x.strip() for x in str(v).split(",") if x.strip()]
     return out
+
+
+def names(text: Optional[str]) -> list[str]:
+    """Service names from a comma-separated option value ('' or None: none)."""
+    return _split([text] if text else [])
+
+
+def service_parser(prog: str, doc: Optional[str]) -> argparse.ArgumentParser:
+    """The argument parser of ``python -m <prog>``, its module docstring as description."""
+    return argparse.ArgumentParser(prog=f"python -m {prog}", description=doc,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
+def set_torch_threads(n: int) -> None:
+    """``--threads``: torch intra-op threads (0 = torch's default)."""
+    if n > 0:
+        import torch
+
+        torch.set_num_threads(n)
 
 
 def add_common_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -78,6 +102,8 @@ def zenoh_config(mode: Optional[str] = "peer", listen: Optional[list[str]] = Non
                  connect: Optional[list[str]] = None, multicast: Optional[bool] = False, options: Optional[dict] = None,
                  base: Optional[zenoh.Config] = None) -> zenoh.Config:
     """A zenoh config with explicit endpoints; ``options`` maps JSON5 key paths to values."""
+    import zenoh
+
     conf = base if base is not None else zenoh.Config()
     # None keeps what ``base`` (a native JSON5 file) says
     if mode is not None:
@@ -108,12 +134,7 @@ def resolve_network(args) -> dict:
             # a native file keeps its own mode and scouting unless the command line says otherwise
             net.update(native=str(path), mode=None, multicast=None)
         else:
-            try:
-                data = yaml.safe_load(path.read_text()) or {}
-            except yaml.YAMLError as e:
-                raise ValueError(f"{path}: invalid YAML: {e}") from None
-            if not isinstance(data, dict):
-                raise ValueError(f"{path}: expected a mapping at the top level")
+            data = read_yaml_mapping(path)
             unknown = set(data) - {"mode", "listen", "connect", "multicast", "namespace", "options"}
             if unknown:
                 raise ValueError(f"{path}: unknown keys {sorted(unknown)} "
@@ -148,6 +169,8 @@ def resolve_network(args) -> dict:
 
 def open_session(args) -> tuple[zenoh.Session, P.Keys]:
     """Open the zenoh session described by the parsed arguments; returns (session, keys)."""
+    import zenoh
+
     net = resolve_network(args)
     keys = P.Keys(net["ns"])
     base = zenoh.Config.from_file(net["native"]) if net["native"] else None
@@ -197,6 +220,17 @@ def exit_process(code: Optional[int]) -> None:
     os._exit(0 if code is None else int(code))
 
 
+def run_main(main: Callable[[], Optional[int]], prog: str) -> None:
+    """``python -m <prog>``: run ``main()``; a missing file or bad value is a one-line error
+    (exit code 2); then :func:`exit_process`."""
+    try:
+        code = main()
+    except (FileNotFoundError, ValueError) as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        code = 2
+    exit_process(code)  # outputs are written: skip the slow interpreter teardown
+
+
 def setup_logging(level: str = "INFO", name: str = "") -> None:
     logging.basicConfig(level=getattr(logging, str(level).upper(), logging.INFO),
                         format=f"%(asctime)s {name or '%(name)s'} %(levelname)s %(message)s", datefmt="%H:%M:%S")
@@ -225,6 +259,93 @@ class Counters:
     def snapshot(self) -> dict:
         with self._lock:
             return dict(self._c)
+
+
+# ---------------------------------------------------------------------------- service cores (no zenoh)
+def rigid_pose(m: np.ndarray) -> np.ndarray:
+    """``m`` (4, 4) with its rotation block projected onto SO(3) (SVD) and last row [0, 0, 0, 1]:
+    float poses out of an optimiser must pass the protocol's rotation check before publishing."""
+    m = np.array(m, np.float64)
+    u, _, vt = np.linalg.svd(m[:3, :3])
+    r = u @ vt
+    if np.linalg.det(r) < 0:
+        u[:, -1] *= -1
+        r = u @ vt
+    m[:3, :3] = r
+    m[3] = [0, 0, 0, 1]
+    return m
+
+
+def usable_camera(cam: Any, undistorted: bool = False) -> dict:
+    """The protocol normal form of camera dict ``cam`` (``Frame.camera``) when the library can use
+    it (:class:`fmapping.camera.PinholeCamera` accepts it; no distortion coefficients when
+    ``undistorted``), else ValueError naming what is wrong."""
+    from fmapping.camera import PinholeCamera
+
+    if undistorted and isinstance(cam, dict) and cam.get("dist"):
+        raise ValueError(f"camera has distortion coefficients {cam['dist']}; the mapper needs undistorted frames "
+                         "(the player undistorts)")
+    try:
+        out = P.check_camera(cam, "camera")
+        PinholeCamera.from_dict(out)
+    except (P.ProtocolError, TypeError, ValueError, KeyError) as e:
+        raise ValueError(f"unusable camera {cam}: {e}") from None
+    return out
+
+
+class ServiceCore:
+    """What the zenoh-free service cores share: counters (the shell passes its own), decoding
+    each payload by the message type its channel carries (``CHANNELS``), and counting bad input.
+
+    Bad input (a payload that fails to decode, a frame the stream cannot take) is counted as
+    ``bad_input`` plus a specific counter, kept in ``last_error``, passed to ``on_bad_input``
+    (a one-line description) and never changes the state. The stream's camera is fixed by
+    the first usable frame (:meth:`frame_camera`)."""
+
+    CHANNELS: dict[str, type] = {}
+
+    def __init__(self, counters=None, on_bad_input: Optional[Callable[[str], None]] = None):
+        self.counters = counters if counters is not None else Counters()
+        self.on_bad_input = on_bad_input
+        self.last_error = ""
+        self.camera_dict: Optional[dict] = None
+
+    def handle(self, channel: str, data: bytes, key: str = "") -> list:
+        """Decode and :meth:`apply` one payload from ``channel``; one that fails to decode is
+        counted (``decode_errors``) and ignored."""
+        expect = self.CHANNELS.get(channel)
+        if expect is None:
+            raise ValueError(f"{type(self).__name__}.handle: unknown channel {channel!r}")
+        try:
+            msg = P.decode(data, expect)
+        except P.ProtocolError as e:
+            self.bad_input(f"{key or channel}: {e}", "decode_errors")
+            return []
+        return self.apply(msg)
+
+    def apply(self, msg: P.Message) -> list:
+        raise NotImplementedError
+
+    def bad_input(self, why: str, counter: str) -> None:
+        self.counters.inc(counter)
+        self.counters.inc("bad_input")
+        self.last_error = why
+        if self.on_bad_input is not None:
+            self.on_bad_input(why)
+
+    def frame_camera(self, f: P.Frame, undistorted: bool = False) -> Optional[dict]:
+        """The camera of frame ``f`` when the stream can take the frame, else None (counted as
+        ``rejected_frames``): the stream's camera (``camera_dict``) when it is fixed, the
+        :func:`usable_camera` of the first frame otherwise (the caller fixes it)."""
+        try:
+            if self.camera_dict is None:
+                return usable_camera(f.camera, undistorted)
+            if f.camera != self.camera_dict:
+                raise ValueError(f"camera {f.camera} differs from the stream's {self.camera_dict}")
+        except ValueError as e:
+            self.bad_input(f"frame {f.seq}: {e}", "rejected_frames")
+            return None
+        return self.camera_dict
 
 
 class Inbox:
@@ -385,16 +506,20 @@ def write_json_atomic(path, data: dict) -> None:
 class Service:
     """A zenoh session plus what every service needs: keys, publishers, an inbox fed by
     subscriptions, a status heartbeat (published and optionally written to a file) and
-    signal handling. The worker loop stays in the concrete service."""
+    signal handling. The worker loop stays in the concrete service; ``with Service(...) as svc``
+    closes it (state ``done``). ``install_signals`` defaults to "when it opens its own session"
+    (a service given a session runs inside a host, e.g. a test, that keeps its signals)."""
 
     def __init__(self, name: str, args, capacities: Optional[dict[str, int]] = None,
                  session: Optional[zenoh.Session] = None, keys: Optional[P.Keys] = None,
-                 install_signals: bool = True):
+                 install_signals: Optional[bool] = None):
         self.name = name
         self.args = args
         self.status = StatusBoard(name)
         self.counters = self.status.counters
         self.inbox = Inbox(capacities or {}, self.counters)
+        if install_signals is None:
+            install_signals = session is None
         self.shutdown = Shutdown(install=install_signals, watch_parent=bool(getattr(args, "exit_with_parent", False)))
         self.log = logging.getLogger(f"fmapping.{name}")
         self.bad_input = RateLimitedLog(self.log)
@@ -409,9 +534,17 @@ class Service:
         self._hb: Optional[threading.Thread] = None
         self._closed = False
 
+    def __enter__(self) -> "Service":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close("done")
+
     # -- publishing
     def publisher(self, key: str, block: bool = True):
         if key not in self._pubs:
+            import zenoh
+
             cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
             self._pubs[key] = self.session.declare_publisher(key, congestion_control=cc)
         return self._pubs[key]
@@ -487,7 +620,29 @@ class Service:
         target = ctl.args.get("target")
         return target in (None, "", "all", self.name) or (isinstance(target, list) and self.name in target)
 
+    def control(self, data: bytes, where: str = "") -> Optional[P.Control]:
+        """The Control message in ``data`` when it decodes and is for this service, else None."""
+        ctl = self.decode(data, P.Control, where)
+        return ctl if ctl is not None and self.addressed(ctl) else None
+
+    def report_bad_input(self, text: str) -> None:
+        """A service core's ``on_bad_input``: the status's last error and a rate-limited warning."""
+        self.status.error(text)
+        self.bad_input("%s", text)
+
+    def report_core(self, core, state: Optional[str] = None, lag: Optional[float] = None) -> None:
+        """Status from a :class:`ServiceCore`: its acknowledgement (``ack``) and new ``last_error``."""
+        self.status.update(state=state, frame_seq=core.ack, lag=lag)
+        if core.last_error and core.last_error != self.status.last_error:
+            self.status.error(core.last_error)
+
     # -- heartbeat and lifetime
+    def start(self, state: str = "running") -> None:
+        """Announce ``state`` now and start the heartbeat."""
+        self.status.update(state=state)
+        self.publish_status()
+        self.start_heartbeat()
+
     def start_heartbeat(self) -> None:
         interval = float(getattr(self.args, "status_interval", 0.5) or 0.5)
 
@@ -566,3 +721,42 @@ class Peers:
     def notify(self) -> None:
         with self._cond:
             self._cond.notify_all()
+
+
+# ---------------------------------------------------------------------------- consumers of a sequence
+def stop_kind(ctl: P.Control, wait_done: Sequence[str]) -> Optional[str]:
+    """For a consumer that ends with the sequence: 'end' for the end-of-sequence stop when it
+    waits for ``wait_done`` services, 'stop' for any other stop, None for other commands."""
+    if ctl.command != "stop":
+        return None
+    return "end" if ctl.args.get("reason") == "end" and wait_done else "stop"
+
+
+def serve_until_end(svc: Service, peers: Peers, handle: Callable[[str, str, bytes], Optional[str]],
+                    wait_done: Sequence[str], final_timeout: float) -> None:
+    """The worker loop of a consumer that ends with the sequence (``io record``, ``io view``).
+
+    Every inbox item goes to ``handle(channel, key, data)`` until it returns 'stop' or a signal
+    comes; once it returns 'end' (:func:`stop_kind`) the loop ends when every service in
+    ``wait_done`` reports state done (or error) in ``peers``, or after ``final_timeout`` seconds.
+    What is still queued then (e.g. the final points published just before 'done') is handled too."""
+    end_deadline: Optional[float] = None
+    while not svc.shutdown.requested:
+        item = svc.inbox.get(timeout=0.1)
+        if item is not None:
+            channel, (key, data) = item
+            what = handle(channel, key, data)
+            if what == "stop":
+                break
+            if what == "end" and end_deadline is None:
+                end_deadline = time.monotonic() + final_timeout
+                svc.status.update(state="finishing")
+        if end_deadline is not None:
+            done = all(peers.get(n) is not None and peers.get(n).state in ("done", "error") for n in wait_done)
+            if done or time.monotonic() > end_deadline:
+                if not done:
+                    svc.log.warning("%s not done after %.0f s: ending with what I have", wait_done, final_timeout)
+                break
+    while (item := svc.inbox.get(timeout=0)) is not None:
+        channel, (key, data) = item
+        handle(channel, key, data)

@@ -117,6 +117,114 @@ def test_tum_association_rejects_beyond_20ms(tmp_path):
     assert gt[0] is not None and gt[1] is None and gt[2] is None
 
 
+# ----------------------------------------------------------------------------- GT interpolation
+T0 = 1305031102.0  # a TUM-like epoch timestamp: float64 resolves it to ~0.2 us
+
+
+def _analytic_pose(t: np.ndarray) -> np.ndarray:
+    """A smooth c2w trajectory of ``t`` (seconds since T0) with a turning rotation axis.
+
+    Bounds used by the tolerances: |p''| <= sqrt(1 + 4) m/s^2, angular acceleration
+    below ~1.5 rad/s^2, so linear / geodesic interpolation over h = 0.01 s errs by at
+    most ~h^2/8 * bound: 3e-5 m and 2e-5 rad (1e-3 deg)."""
+    from scipy.spatial.transform import Rotation
+
+    t = np.asarray(t, np.float64)
+    rot = Rotation.from_euler("z", 0.8 * t[:, None]) * Rotation.from_euler("x", 0.5 * np.sin(1.3 * t)[:, None])
+    out = np.tile(np.eye(4), (len(t), 1, 1))
+    out[:, :3, :3] = rot.as_matrix()
+    out[:, :3, 3] = np.stack([np.sin(t), 0.5 * np.cos(2 * t), 0.3 * t], -1)
+    return out
+
+
+def _pose_errors(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(position error m, rotation error deg) between pose stacks."""
+    dr = np.swapaxes(a[:, :3, :3], -1, -2) @ b[:, :3, :3]
+    ang = np.degrees(np.arccos(np.clip((np.trace(dr, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    return np.linalg.norm(a[:, :3, 3] - b[:, :3, 3], axis=1), ang
+
+
+def test_interpolate_poses_matches_analytic_trajectory_at_100hz():
+    from fmapping.trajectory import associate, interpolate_poses
+
+    rel = np.arange(0, 301) * 0.01  # 3 s of GT at 100 Hz
+    ref_ts = np.round(T0 + rel, 6)  # as a TUM file stores them
+    ref = _analytic_pose(ref_ts - T0)
+    q = T0 + np.sort(np.random.default_rng(0).uniform(0.0, 3.0, 500))
+    got, how = interpolate_poses(q, ref_ts, ref, max_dt=0.02)
+    assert (how == "interpolated").all()
+    want = _analytic_pose(q - T0)
+    de, re = _pose_errors(got, want)
+    assert de.max() < 1e-4 and re.max() < 5e-3, (de.max(), re.max())
+    # the same tolerance fails the nearest sample (up to h/2 * |v| ~ 5 mm), so this test can tell
+    j = associate(q, ref_ts, 0.02)
+    de_n, re_n = _pose_errors(ref[j], want)
+    assert de_n.max() > 2e-3 and re_n.max() > 0.1, (de_n.max(), re_n.max())
+    # proper rigid poses
+    np.testing.assert_allclose(got[:, :3, :3] @ np.swapaxes(got[:, :3, :3], 1, 2), np.broadcast_to(np.eye(3), (500, 3, 3)),
+                               atol=1e-12)
+    np.testing.assert_array_equal(got[:, 3], np.broadcast_to([0.0, 0.0, 0.0, 1.0], (500, 4)))
+
+
+def test_interpolate_poses_exact_cases_gaps_and_range():
+    from fmapping.trajectory import interpolate_poses
+
+    # constant angular velocity and linear motion: geodesic + linear interpolation is exact
+    xi = torch.tensor([0.4, -0.2, 0.1, 0.3, -0.5, 0.7], dtype=torch.float64)
+    ts = np.array([0.0, 0.01, 0.02, 0.10, 0.11])  # a 0.08 s gap between 0.02 and 0.10
+    rot = g.so3_exp(torch.from_numpy(ts)[:, None] * xi[3:]).numpy()
+    ref = np.tile(np.eye(4), (len(ts), 1, 1))
+    ref[:, :3, :3] = rot
+    ref[:, :3, 3] = ts[:, None] * xi[:3].numpy()
+    q = np.array([0.0, 0.0037, 0.01, 0.015, 0.035, 0.06, 0.09, 0.105, 0.125, -0.001, 0.11])
+    got, how = interpolate_poses(q, ts, ref, max_dt=0.02)
+    assert how.tolist() == ["interpolated", "interpolated", "interpolated", "interpolated", "nearest", "none",
+                            "nearest", "interpolated", "nearest", "nearest", "interpolated"]
+    np.testing.assert_array_equal(got[0], ref[0])  # on a sample: that sample, bit for bit
+    np.testing.assert_array_equal(got[2], ref[1])
+    for k in (1, 3, 7):
+        want_r = g.so3_exp(torch.tensor(q[k] * xi[3:].numpy())).numpy()
+        np.testing.assert_allclose(got[k, :3, :3], want_r, atol=1e-12)
+        np.testing.assert_allclose(got[k, :3, 3], q[k] * xi[:3].numpy(), atol=1e-12)
+    np.testing.assert_array_equal(got[4], ref[2])  # in the gap, 15 ms after 0.02: nearest
+    np.testing.assert_array_equal(got[6], ref[3])  # 10 ms before 0.10
+    assert np.isnan(got[5]).all()  # 40 ms from both ends of the gap
+    np.testing.assert_array_equal(got[8], ref[4])  # past the end: no extrapolation, nearest within 20 ms
+    np.testing.assert_array_equal(got[9], ref[0])  # before the start
+    _, how_strict = interpolate_poses(q, ts, ref, max_dt=0.02, nearest_fallback=False)
+    assert set(how_strict[[4, 6, 8, 9]]) == {"none"}
+    # an unsorted reference gives the same answer
+    perm = np.array([3, 0, 4, 2, 1])
+    got_p, how_p = interpolate_poses(q, ts[perm], ref[perm], max_dt=0.02)
+    np.testing.assert_array_equal(how_p, how)
+    np.testing.assert_allclose(got_p, got, atol=0, equal_nan=True)
+    with pytest.raises(ValueError, match="poses of shape"):
+        interpolate_poses(q, ts, ref[:3])
+
+
+def test_tum_ground_truth_is_interpolated_with_gaps(tmp_path):
+    root = tmp_path / "fr1_interp"
+    rel_gt = np.round(np.arange(-5, 101) * 0.01, 2)
+    rel_gt = rel_gt[(rel_gt <= 0.40) | (rel_gt >= 0.50)]  # a 0.1 s drop-out in the motion capture
+    write_tum_trajectory(root / "groundtruth.txt", T0 + rel_gt, _analytic_pose(rel_gt))
+    rel = np.array([0.0, 0.123456, 0.25, 0.3777, 0.405, 0.45, 0.6, 0.999123, 1.2])
+    rng = np.random.default_rng(3)
+    lines = []
+    for t in T0 + rel:
+        _write_rgb(root / "rgb" / f"{t:.6f}.png", _rgb(rng))
+        lines.append(f"{t:.6f} rgb/{t:.6f}.png")
+    (root / "rgb.txt").write_text("\n".join(lines) + "\n")
+    ds = open_dataset(root)
+    assert ds.meta["groundtruth_association"] == {"interpolated": 6, "nearest": 1, "none": 2}
+    interp = [0, 1, 2, 3, 6, 7]
+    got = np.stack([ds.gt_poses[i] for i in interp])
+    de, re = _pose_errors(got, _analytic_pose(np.asarray(ds.timestamps)[interp] - T0))
+    assert de.max() < 1e-4 and re.max() < 5e-3, (de, re)  # 1e-9 rounding of the file is far below
+    np.testing.assert_allclose(ds.gt_poses[4], _analytic_pose(np.array([0.40]))[0], atol=1e-8)  # nearest row
+    assert ds.gt_poses[5] is None and ds.gt_poses[8] is None
+    assert ds.describe()["gt_poses"] == 7
+
+
 def test_tum_name_table_and_unknown_default(tmp_path, caplog):
     make_tum(tmp_path / "rgbd_dataset_freiburg2_xyz", n=2)
     ds = open_dataset(tmp_path / "rgbd_dataset_freiburg2_xyz")
@@ -141,6 +249,21 @@ def test_calib_txt_wins_and_sets_depth_factor(tmp_path):
     f = ds[2]
     np.testing.assert_array_equal(f.rgb, rgbs[2])
     np.testing.assert_allclose(f.depth, raws[2] / 1000.0, rtol=1e-6)
+
+
+def test_tum_rig_intrinsics_without_distortion_get_the_rig_distortion(tmp_path):
+    from fmapping.datasets.tum import TUM_INTRINSICS, complete_tum_distortion
+
+    k, dist = TUM_INTRINSICS["freiburg1"]
+    vals, note = complete_tum_distortion(tmp_path / "tum_fr1_rpy", list(k), (640, 480))
+    assert vals == [*k, *dist] and "freiburg1" in note
+    # anything else is taken as written: other numbers, explicit distortion, other size, unknown rig
+    for root, v, size in [(tmp_path / "tum_fr1_rpy", [500.0, 500.0, 320.0, 240.0], (640, 480)),
+                          (tmp_path / "tum_fr1_rpy", [*k, 0.1, 0, 0, 0], (640, 480)),
+                          (tmp_path / "tum_fr1_rpy", list(k), (320, 240)),
+                          (tmp_path / "mystery", list(k), (640, 480)),
+                          (tmp_path / "tum_fr3_office", list(TUM_INTRINSICS["freiburg3"][0]), (640, 480))]:
+        assert complete_tum_distortion(root, v, size) == (v, None)
 
 
 def _distort(uv: np.ndarray, K: np.ndarray, d) -> np.ndarray:
@@ -597,6 +720,9 @@ def test_real_tum_fr1_rpy():
     assert ds.kind == "tum" and len(ds) == 60 and ds.camera.size == (640, 480)
     assert (ds.camera.fx, ds.camera.fy, ds.camera.cx, ds.camera.cy) == (517.3, 516.5, 318.6, 255.3)
     assert ds.meta["camera_source"].endswith("calib.txt") and ds.camera.dist is None
+    # its calib.txt holds only fr1's fx fy cx cy: the raw images get fr1's distortion removed
+    assert ds.raw_camera.dist == (0.2624, -0.9531, -0.0054, 0.0026, 1.1633) and ds.meta["undistorted"]
+    assert "freiburg1" in ds.meta["camera_note"]
     assert all(p is not None for p in ds.gt_poses) and ds.depth_scale == 5000.0
     f = ds[59]
     assert f.rgb.shape == (480, 640, 3) and f.depth.shape == (480, 640)

@@ -119,3 +119,116 @@ def test_opacity_grid_and_mesh_culled_to_views():
         return {"depth": d, "acc": np.ones_like(d)}
     v2, f2, _ = export_mesh(field, AABB, 61, poses, CAM, level=0.5, near=0.1, far=5.0, render=render)
     assert len(f2) > 0 and v2[:, 2].max() < 2.05
+
+
+# ----------------------------------------------------------------- fast export path vs the reference renderers
+def _structured_cp_field(resolution: int = 32):
+    """A CP field with a dense wall at z ~ 2 and a small cube at (-0.45, 0, 0.6), random low-density noise elsewhere."""
+    from fmapping.field import CPField
+
+    cfg = FieldConfig(kind="cp", resolution=resolution, density_components=4, appearance_components=6,
+                      app_features=8, hidden=16, seed=3)
+    field = CPField(cfg, AABB)
+    axes = [torch.linspace(float(AABB[0, a]), float(AABB[1, a]), resolution) for a in range(3)]
+    with torch.no_grad():
+        lines = field.density_lines  # (3, C, R, 1)
+        lines[:, 0, :, 0] = 1.0
+        lines[2, 0, :, 0] = 30.0 * torch.exp(-((axes[2] - 2.0) / 0.12) ** 2)  # the wall
+        for a, c in enumerate((-0.45, 0.0, 0.6)):  # the cube: a product of three bumps
+            lines[a, 1, :, 0] = 3.2 * torch.exp(-((axes[a] - c) / 0.15) ** 2)
+    return field
+
+
+def test_node_density_equals_the_field_for_multilinear_fields():
+    from fmapping.export import node_density
+    from fmapping.field import build_field
+
+    g = torch.Generator().manual_seed(0)
+    o = torch.randn(300, 3, generator=g) * 0.5 + torch.tensor([0.0, 0.0, 1.0])
+    d = torch.randn(300, 3, generator=g)
+    t = torch.rand(300, 20, generator=g).sort(-1).values * 6.0  # many samples leave the box
+    xyz = o[:, None] + t[..., None] * d[:, None]
+    for kind, extra in (("cp", {}), ("vm", {}), ("grid", {"grid_resolution": 12})):
+        field = build_field(FieldConfig(kind=kind, resolution=17, init_scale=1.0, **extra), AABB)
+        nd = node_density(field)
+        assert nd is not None, kind
+        ref = field.density_raw(xyz.reshape(-1, 3)).view(300, 20).detach()
+        torch.testing.assert_close(nd.raw_rays(o, d, t), ref, rtol=1e-4, atol=1e-4, msg=kind)
+    assert node_density(build_field(FieldConfig(kind="mlp", mlp_layers=1, mlp_width=8), AABB)) is None
+    assert node_density(SlabField([])) is None
+
+
+@pytest.mark.parametrize("use_nodes", [True, False])
+def test_render_view_matches_render_image(use_nodes):
+    from fmapping.export import node_density, render_view
+    from fmapping.render import render_image
+
+    field = _structured_cp_field()
+    nd = node_density(field) if use_nodes else None
+    for pose in (look_forward(-0.4), look_forward(0.6, 0.3)):
+        ref = render_image(field, CAM, pose, 0.1, 5.0, 32, n_importance=16)
+        out = render_view(field, CAM, pose, 0.1, 5.0, 32, 16, node=nd)
+        acc = ref["acc"].numpy()
+        assert (acc > 0.9).mean() > 0.8  # the wall fills most of the view
+        np.testing.assert_allclose(out["acc"], acc, atol=1e-4)
+        hit = acc > 0.5
+        np.testing.assert_allclose(out["depth"][hit], ref["depth_normalized"].numpy()[hit], atol=1e-3)
+        np.testing.assert_allclose(out["rgb"], ref["rgb"].clamp(0, 1).numpy(), atol=1e-4)
+        # colour from the 4 largest weights (renormalised), only on opaque rays
+        top = render_view(field, CAM, pose, 0.1, 5.0, 32, 16, node=nd, color_samples=4, color_min_acc=0.9)
+        opaque = acc >= 0.9
+        assert np.abs(top["rgb"][opaque] - out["rgb"][opaque]).mean() < 2 / 255
+        assert (top["rgb"][~opaque] == 0).all()
+
+
+def test_fast_export_matches_the_reference_export():
+    from scipy.spatial import cKDTree
+
+    field = _structured_cp_field()
+    poses = [look_forward(-0.4), look_forward(0.4), look_forward(0.8)]
+    kw = dict(stride=1, voxel=0.02, near=0.1, far=5.0, n_samples=32, n_importance=16)
+    p_ref, c_ref = export_point_cloud(field, poses, CAM, fast=False, **kw)
+    p_new, c_new = export_point_cloud(field, poses, CAM, **kw)
+    assert len(p_ref) > 500
+    assert abs(len(p_new) - len(p_ref)) <= 0.002 * len(p_ref)
+    d1, i1 = cKDTree(p_ref).query(p_new)
+    d2, _ = cKDTree(p_new).query(p_ref)
+    assert np.median(d1) < 1e-6 and max(np.quantile(d1, 0.99), np.quantile(d2, 0.99)) < 1e-3
+    assert np.abs(c_new.astype(float) - c_ref[i1]).mean() < 2.0
+    # the cube in front of camera 0 only is dropped by both (multi-view test)
+    assert (p_ref[:, 2] < 1.0).sum() == 0 and (p_new[:, 2] < 1.0).sum() == 0
+
+
+def test_fast_export_of_a_mapper_matches_its_renderer():
+    from fmapping.mapper import Mapper, MapperConfig
+
+    cfg = MapperConfig()
+    cfg.field.resolution = 32
+    cfg.field.density_components, cfg.field.appearance_components = 4, 6
+    cfg.field.app_features, cfg.field.hidden = 8, 16
+    m = Mapper(cfg, CAM, aabb=AABB.numpy())
+    m._build()  # a field without training; its parameters are set below
+    m.field.load_state_dict(_structured_cp_field().state_dict())
+    poses = {i: look_forward(x) for i, x in enumerate((-0.4, 0.4, 0.8))}
+    kw = dict(stride=2, voxel=0.02, near=cfg.near, far=cfg.far, n_samples=32, n_importance=16)
+    p_ref, c_ref = export_point_cloud(m, poses, CAM, fast=False, **kw)
+    p_new, c_new = export_point_cloud(m, poses, CAM, **kw)
+    assert len(p_ref) > 100 and abs(len(p_new) - len(p_ref)) <= 0.01 * len(p_ref)
+    from scipy.spatial import cKDTree
+    d, i = cKDTree(p_ref).query(p_new)
+    assert np.quantile(d, 0.99) < 1e-3
+    assert np.abs(c_new.astype(float) - c_ref[i]).mean() < 2.0
+
+
+def test_voxel_downsample_matches_a_slow_reference():
+    rng = np.random.default_rng(1)
+    pts = rng.normal(size=(5000, 3)) * [1.0, 0.5, 0.2] - [3.0, 0.0, 1.0]  # negative coordinates too
+    cols = rng.integers(0, 256, (5000, 3)).astype(np.uint8)
+    p, c = voxel_downsample(pts, cols, 0.1)
+    keys = np.floor(pts / 0.1).astype(np.int64)
+    uniq = sorted(set(map(tuple, keys)))  # lexicographic (x, y, z), as documented
+    assert len(p) == len(uniq)
+    for n in (0, len(uniq) // 2, len(uniq) - 1):
+        m = (keys == uniq[n]).all(1)
+        np.testing.assert_allclose(p[n], pts[m].mean(0), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(c[n], cols[m].mean(0), rtol=1e-12)

@@ -6,7 +6,8 @@ import torch
 from fmapping.camera import PinholeCamera
 from fmapping.geometry import make_pose
 from fmapping.losses import (
-    depth_l1_loss, expected_depth_l1, patch_offsets, photometric_loss, sample_consistency_cost, sample_frames, sample_views, warping_loss,
+    depth_l1_loss, expected_depth_l1, patch_offsets, photometric_loss, project_patches, sample_consistency_cost,
+    sample_frames, sample_views, warping_loss,
 )
 
 CAM = PinholeCamera(80.0, 80.0, 39.5, 29.5, 80, 60)
@@ -200,3 +201,24 @@ def test_sample_consistency_cost_minimum_at_surface():
     # with one other view the robust mean (keep < 1, sorted path) equals the plain mean (keep = 1)
     cost1, _ = sample_consistency_cost(pts, ref, src, imgs, c2w, CAM, keep=1.0)
     torch.testing.assert_close(cost1, cost)
+
+
+def test_project_patches_pixels_depths_masks_and_patches_on_the_plane():
+    """Points on the plane z = 2 and one behind both cameras; view 1 sits at (0.3, 0.05, 0), so a
+    point (x, y, 2) lands at u = 39.5 + 40 (x - 0.3), v = 29.5 + 40 (y - 0.05) there."""
+    imgs, c2w = setup_two_views()
+    pts = torch.tensor([[0.1, -0.05, 2.0], [0.0, 0.0, -1.0], [1.2875, 0.0, 2.0]])
+    src = torch.tensor([0, 1, 0])
+    uv, z, mask, patches = project_patches(pts, src, imgs, c2w, CAM, radius=1, dilation=1.0)
+    torch.testing.assert_close(uv[:, 0], torch.tensor([[43.5, 27.5], [31.5, 25.5]]))
+    torch.testing.assert_close(uv[1, 2], torch.tensor([79.0, 27.5]))
+    torch.testing.assert_close(z, torch.tensor([[2.0, -1.0, 2.0], [2.0, -1.0, 2.0]]))
+    # own frame, behind the camera, and a patch reaching past the image border are masked
+    assert mask.tolist() == [[False, False, False], [True, False, False]]
+    assert project_patches(pts, src, imgs, c2w, CAM, radius=0)[2].tolist() == [[False, False, False],
+                                                                                [True, False, True]]
+    # the 3x3 patch of the first point in view 1 is the plane's texture one pixel (2/80 m) apart
+    off = patch_offsets(1, 1.0, dtype=torch.float64) * (PLANE_Z / CAM.fx)
+    want = texture(0.1 + off[:, 0], -0.05 + off[:, 1]).float()
+    assert patches.shape == (2, 3, 9, 3)
+    torch.testing.assert_close(patches[1, 0], want, atol=5e-3, rtol=0)

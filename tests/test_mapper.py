@@ -11,13 +11,7 @@ from fmapping.metrics import psnr, recon_metrics
 from fmapping.synthetic import camera_for_size, gt_cloud, make_scene, make_trajectory, render_view, visible_mask
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Small workloads: one thread is faster and steadier on a shared CPU."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # small workloads: steadier on a shared CPU
 
 
 def tiny_config(**kw) -> MapperConfig:

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from fmapping import protocol as P
+from service_helpers import pack, raw_message, wire_array
 
 
 def _frame(h=6, w=8, depth=True, seq=3) -> P.Frame:
@@ -109,31 +110,19 @@ def test_keys_layout_and_channel_parsing():
 
 
 # ---------------------------------------------------------------------------- malformed payloads
-def _raw(msg) -> dict:
-    return msgpack.unpackb(P.encode(msg), raw=False)
-
-
-def _pack(d) -> bytes:
-    return msgpack.packb(d, use_bin_type=True)
-
-
 def _with(msg, path, value):
-    d = _raw(msg)
+    d = raw_message(msg)
     node = d
     for p in path[:-1]:
         node = node[p]
     node[path[-1]] = value
-    return _pack(d)
+    return pack(d)
 
 
 def _without(msg, field):
-    d = _raw(msg)
+    d = raw_message(msg)
     del d[field]
-    return _pack(d)
-
-
-def _arr(a) -> dict:
-    return {"dtype": a.dtype.name, "shape": list(a.shape), "data": a.tobytes()}
+    return pack(d)
 
 
 MALFORMED = {
@@ -141,8 +130,8 @@ MALFORMED = {
     "truncated": (P.encode(_frame())[:-7], "not a valid msgpack"),
     "truncated_header": (P.encode(_pose())[:3], "not a valid msgpack"),
     "trailing_bytes": (P.encode(_pose()) + b"\x00", "trailing bytes"),
-    "not_a_map": (_pack([1, 2, 3]), "must be a msgpack map"),
-    "not_a_map_int": (_pack(5), "must be a msgpack map"),
+    "not_a_map": (pack([1, 2, 3]), "must be a msgpack map"),
+    "not_a_map_int": (pack(5), "must be a msgpack map"),
     "pickle": (pickle.dumps({"schema": "Pose"}), "pickle"),
     "pickle_protocol2": (pickle.dumps([1, 2], protocol=2), "pickle"),
     "unknown_schema": (_with(_pose(), ["schema"], "Evil"), "unknown schema"),
@@ -155,19 +144,19 @@ MALFORMED = {
     "seq_not_int": (_with(_pose(), ["seq"], "3"), "seq: expected an integer"),
     "seq_negative_frame": (_with(_frame(), ["seq"], -1), "seq: -1 outside"),
     "timestamp_nan": (_with(_pose(), ["timestamp"], float("nan")), "timestamp: must be finite"),
-    "pose_nan": (_with(_pose(), ["c2w"], _arr(np.full((4, 4), np.nan))), "NaN or Inf"),
-    "pose_inf": (_with(_pose(), ["c2w"], _arr(np.where(np.eye(4) > 0, np.inf, 0.0))), "NaN or Inf"),
-    "pose_not_rigid": (_with(_pose(), ["c2w"], _arr(np.diag([2.0, 1, 1, 1]))), "not a proper rotation"),
-    "pose_reflection": (_with(_pose(), ["c2w"], _arr(np.diag([-1.0, 1, 1, 1]))), "not a proper rotation"),
-    "pose_bad_last_row": (_with(_pose(), ["c2w"], _arr(np.ones((4, 4)))), "last row"),
-    "pose_wrong_shape": (_with(_pose(), ["c2w"], _arr(np.eye(3))), "shape"),
-    "pose_wrong_dtype": (_with(_pose(), ["c2w"], _arr(np.eye(4, dtype=np.float32))), "expected dtype float64"),
+    "pose_nan": (_with(_pose(), ["c2w"], wire_array(np.full((4, 4), np.nan))), "NaN or Inf"),
+    "pose_inf": (_with(_pose(), ["c2w"], wire_array(np.where(np.eye(4) > 0, np.inf, 0.0))), "NaN or Inf"),
+    "pose_not_rigid": (_with(_pose(), ["c2w"], wire_array(np.diag([2.0, 1, 1, 1]))), "not a proper rotation"),
+    "pose_reflection": (_with(_pose(), ["c2w"], wire_array(np.diag([-1.0, 1, 1, 1]))), "not a proper rotation"),
+    "pose_bad_last_row": (_with(_pose(), ["c2w"], wire_array(np.ones((4, 4)))), "last row"),
+    "pose_wrong_shape": (_with(_pose(), ["c2w"], wire_array(np.eye(3))), "shape"),
+    "pose_wrong_dtype": (_with(_pose(), ["c2w"], wire_array(np.eye(4, dtype=np.float32))), "expected dtype float64"),
     "pose_source_bad": (_with(_pose(), ["source"], "gt/evil"), "source"),
     "dtype_not_allowed": (_with(_frame(), ["rgb", "dtype"], "object"), "not allowed"),
     "dtype_complex": (_with(_frame(), ["rgb", "dtype"], "complex64"), "not allowed"),
-    "rgb_wrong_dtype": (_with(_frame(), ["rgb"], _arr(np.zeros((6, 8, 3), np.uint16))), "expected dtype uint8"),
-    "rgb_wrong_shape": (_with(_frame(), ["rgb"], _arr(np.zeros((6, 8, 4), np.uint8))), "shape"),
-    "rgb_gray": (_with(_frame(), ["rgb"], _arr(np.zeros((6, 8), np.uint8))), "3 dimensions"),
+    "rgb_wrong_dtype": (_with(_frame(), ["rgb"], wire_array(np.zeros((6, 8, 3), np.uint16))), "expected dtype uint8"),
+    "rgb_wrong_shape": (_with(_frame(), ["rgb"], wire_array(np.zeros((6, 8, 4), np.uint8))), "shape"),
+    "rgb_gray": (_with(_frame(), ["rgb"], wire_array(np.zeros((6, 8), np.uint8))), "3 dimensions"),
     "data_size_mismatch": (_with(_frame(), ["rgb", "shape"], [6, 9, 3]), "do not match shape"),
     "negative_dim": (_with(_frame(), ["rgb", "shape"], [6, -8, 3]), "outside"),
     "shape_not_list": (_with(_frame(), ["rgb", "shape"], "6x8"), "shape must be a list"),
@@ -176,26 +165,26 @@ MALFORMED = {
     "oversized_frame": (_with(_frame(), ["rgb", "shape"], [5000, 5000, 3]), "exceeds"),
     "oversized_points": (_with(_points(), ["points", "shape"], [P.MAX_POINTS + 1, 3]), "exceeds"),
     "too_many_dims": (_with(_frame(), ["rgb", "shape"], [1] * 9), "at most"),
-    "depth_size_mismatch": (_with(_frame(), ["depth"], _arr(np.ones((5, 8), np.float32))), "does not match rgb"),
-    "depth_nan": (_with(_frame(), ["depth"], _arr(np.full((6, 8), np.nan, np.float32))), "finite"),
-    "depth_negative": (_with(_frame(), ["depth"], _arr(np.full((6, 8), -1.0, np.float32))), ">= 0"),
-    "depth_wrong_dtype": (_with(_frame(), ["depth"], _arr(np.ones((6, 8), np.float64))), "expected dtype float32"),
+    "depth_size_mismatch": (_with(_frame(), ["depth"], wire_array(np.ones((5, 8), np.float32))), "does not match rgb"),
+    "depth_nan": (_with(_frame(), ["depth"], wire_array(np.full((6, 8), np.nan, np.float32))), "finite"),
+    "depth_negative": (_with(_frame(), ["depth"], wire_array(np.full((6, 8), -1.0, np.float32))), ">= 0"),
+    "depth_wrong_dtype": (_with(_frame(), ["depth"], wire_array(np.ones((6, 8), np.float64))), "expected dtype float32"),
     "camera_missing_fx": (_with(_frame(), ["camera"], {"fy": 1.0, "cx": 1, "cy": 1, "width": 8, "height": 6}), "missing fx"),
     "camera_nan": (_with(_frame(), ["camera", "fx"], float("inf")), "finite"),
     "camera_negative_focal": (_with(_frame(), ["camera", "fx"], -5.0), "positive"),
     "camera_size_mismatch": (_with(_frame(), ["camera", "width"], 9), "does not match the image"),
     "camera_not_map": (_with(_frame(), ["camera"], [1, 2]), "expected a map"),
-    "points_colors_mismatch": (_with(_points(), ["colors"], _arr(np.zeros((3, 3), np.uint8))), "colours for"),
-    "points_nan": (_with(_points(), ["points"], _arr(np.full((4, 3), np.nan, np.float32))), "NaN"),
-    "field_aabb_inverted": (_with(_field(), ["aabb"], _arr(np.array([[1.0, 1, 1], [0, 0, 0]]))), "below max"),
-    "field_array_nan": (_with(_field(), ["arrays", "app_lines"], _arr(np.full((2, 2), np.inf, np.float32))), "NaN or Inf"),
+    "points_colors_mismatch": (_with(_points(), ["colors"], wire_array(np.zeros((3, 3), np.uint8))), "colours for"),
+    "points_nan": (_with(_points(), ["points"], wire_array(np.full((4, 3), np.nan, np.float32))), "NaN"),
+    "field_aabb_inverted": (_with(_field(), ["aabb"], wire_array(np.array([[1.0, 1, 1], [0, 0, 0]]))), "below max"),
+    "field_array_nan": (_with(_field(), ["arrays", "app_lines"], wire_array(np.full((2, 2), np.inf, np.float32))), "NaN or Inf"),
     "field_arrays_not_map": (_with(_field(), ["arrays"], [1]), "map of name"),
-    "field_bad_array_name": (_with(_field(), ["arrays", "../x"], _arr(np.ones(2, np.float32))), "bad array name"),
+    "field_bad_array_name": (_with(_field(), ["arrays", "../x"], wire_array(np.ones(2, np.float32))), "bad array name"),
     "field_config_not_map": (_with(_field(), ["config"], "cp"), "expected a map"),
     "status_counter_text": (_with(_status(), ["counters", "x"], "many"), "expected a number"),
     "control_unknown_command": (_with(_control(), ["command"], "rm -rf"), "is not one of"),
     "control_args_not_map": (_with(_control(), ["args"], [1, 2]), "expected a map"),
-    "ext_type": (_pack({"schema": "Control", "v": 1, "command": "stop", "args": msgpack.ExtType(5, b"xx")}),
+    "ext_type": (pack({"schema": "Control", "v": 1, "command": "stop", "args": msgpack.ExtType(5, b"xx")}),
                  "not a valid msgpack"),
     "int_keys": (b"\x81\x01\x02", "not a valid msgpack"),
 }

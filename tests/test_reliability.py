@@ -30,74 +30,17 @@ import torch
 zenoh = pytest.importorskip("zenoh")
 
 from fmapping import protocol as P  # noqa: E402
+from service_helpers import (ROOT, GtProducer, feed, import_example, loopback_endpoint, mapper_yaml,  # noqa: E402
+                             pack, peer_conf, raw_message, small_cfg, start_thread, subprocess_env, wait_matching,
+                             wire_array)
 from services import common as C  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT = 60.0
 N_FUZZ = 10_000
-
-SMALL_MAPPER = {
-    "init_frames": 4, "init_rounds": [[0, 16], [3, 16]], "init_iters_per_round": 4,
-    "window_size": 6, "n_global_keyframes": 2, "new_frames_per_window": 2, "iters_per_window": 2,
-    "keyframe_every": 2, "rays_per_iter": 96, "n_coarse": 12, "n_fine": 4, "final_global_iters": 2,
-    "device": "cpu", "seed": 0,
-    "field": {"resolution": 12, "density_components": 4, "appearance_components": 4, "app_features": 8, "hidden": 8},
-}
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    from fmapping.synthetic import generate_scene
-
-    out = tmp_path_factory.mktemp("scene") / "s"
-    generate_scene(out, seed=2, frames=14, size=(64, 48), max_cloud_points=2000, mesh_spacing=0.2)
-    return out
-
-
-@pytest.fixture(scope="module")
-def dataset(scene):
-    from fmapping.datasets import open_dataset
-
-    return open_dataset(scene)
-
-
-def small_cfg(**over):
-    from fmapping.config import merge
-    from fmapping.mapper import MapperConfig
-
-    return merge(MapperConfig(), dict(SMALL_MAPPER, **over))
-
-
-def _feed(core, ds, ids, source="gt"):
-    outs = []
-    for i in ids:
-        f = ds[i]
-        outs += core.handle("poses", P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source=source)))
-        outs += core.handle("frames", P.encode(P.frame_from_dataset(f, seq=i)))
-    return outs
+pytestmark = pytest.mark.usefixtures("one_thread")  # scene, dataset, zpair: conftest.py
 
 
 # ============================================================================ fuzz generator
-def _raw(msg) -> dict:
-    return msgpack.unpackb(P.encode(msg), raw=False)
-
-
-def _pack(obj) -> bytes:
-    return msgpack.packb(obj, use_bin_type=True)
-
-
-def _arr(a: np.ndarray) -> dict:
-    return {"dtype": a.dtype.name, "shape": list(a.shape), "data": a.tobytes()}
-
-
 NAN, INF = float("nan"), float("inf")
 BAD_INT = [-7, -(2 ** 63), 2 ** 63, 2 ** 64 - 1, "3", 1.5, None, True, [1], {"a": 1}, b"\x01"]
 BAD_FLOAT = [NAN, INF, -INF, "1.0", None, True, [0.5], {"x": 1.0}, b"\x00"]
@@ -145,7 +88,7 @@ class Fuzzer:
         self.bases = bases
         self.semantic = semantic or {}
         self.encoded = {ch: P.encode(m) for ch, m in bases.items()}
-        self.raws = {ch: _raw(m) for ch, m in bases.items()}
+        self.raws = {ch: raw_message(m) for ch, m in bases.items()}
         others = [P.Pose(seq=1, timestamp=0.0, c2w=np.eye(4), source="gt"), P.Control("stop"),
                   P.Status(service="x"), P.PointsSnapshot(version=1, points=np.zeros((2, 3), np.float32),
                                                           colors=np.zeros((2, 3), np.uint8)),
@@ -162,7 +105,7 @@ class Fuzzer:
         return seq[int(self.rng.integers(len(seq)))]
 
     def _copy(self, channel: str) -> dict:
-        return msgpack.unpackb(_pack(self.raws[channel]), raw=False)  # deep copy
+        return msgpack.unpackb(pack(self.raws[channel]), raw=False)  # deep copy
 
     def schema(self, channel: str) -> str:
         return type(self.bases[channel]).__name__
@@ -180,7 +123,7 @@ class Fuzzer:
 
     def not_a_map(self, ch):
         v = self.pick([[1, 2, 3], 5, -1, 2.5, "Frame", b"\x00\x01", None, True, [self.raws[ch]]])
-        return "not_a_map", _pack(v)
+        return "not_a_map", pack(v)
 
     def pickled(self, ch):
         return "pickle", pickle.dumps(self.raws[ch], protocol=int(self.rng.integers(2, 6)))
@@ -191,16 +134,16 @@ class Fuzzer:
     def ext_type(self, ch):
         d = self._copy(ch)
         d[self.pick(list(SCHEMA[self.schema(ch)]))] = msgpack.ExtType(int(self.rng.integers(0, 128)), b"xx")
-        return "ext_type", _pack(d)
+        return "ext_type", pack(d)
 
     def int_keys(self, ch):
         d = self._copy(ch)
-        return "int_keys", _pack({**d, 7: 1})
+        return "int_keys", pack({**d, 7: 1})
 
     def wrong_schema(self, ch):
         d = self._copy(ch)
         d["schema"] = self.pick(["Evil", "", "frame", "Frames", 3, None, ["Frame"], "Pose\x00"])
-        return "wrong_schema", _pack(d)
+        return "wrong_schema", pack(d)
 
     def other_message(self, ch):
         name = self.pick(sorted(k for k in self.others if k != self.schema(ch)))
@@ -212,17 +155,17 @@ class Fuzzer:
             del d["v"]
         else:
             d["v"] = self.pick([0, 2, 99, -1, 2 ** 32, "1", 1.0, None, True, [1]])
-        return "wrong_version", _pack(d)
+        return "wrong_version", pack(d)
 
     def missing_field(self, ch):
         d = self._copy(ch)
         del d[self.pick(list(REQUIRED[self.schema(ch)]) + ["schema"])]
-        return "missing_field", _pack(d)
+        return "missing_field", pack(d)
 
     def unknown_field(self, ch):
         d = self._copy(ch)
         d[self.pick(["extra", "__class__", "c2w_", "Seq", "data"])] = self.pick([1, "x", None, [1, 2]])
-        return "unknown_field", _pack(d)
+        return "unknown_field", pack(d)
 
     def bad_value(self, ch):
         """A scalar / map field given a value of the wrong type or out of range."""
@@ -251,7 +194,7 @@ class Fuzzer:
             v = self.pick([[1], "x", 5, None, _deep(P.MAX_NESTING + 1), {"s": "x" * (P.MAX_STRING + 1)},
                            {"f": NAN}, {"f": INF}, {"b": b"raw"}])
         d[name] = v
-        return f"bad_{kind}", _pack(d)
+        return f"bad_{kind}", pack(d)
 
     def _bad_camera(self, cam: dict):
         cam = dict(cam)
@@ -297,7 +240,7 @@ class Fuzzer:
         """An array field spoiled: dtype, shape, data, size, container."""
         d = self._copy(ch)
         name, a = self._array_field(ch)
-        enc = _arr(a)
+        enc = wire_array(a)
         how = int(self.rng.integers(12))
         if how == 0:
             enc["dtype"] = self.pick(BAD_DTYPE)
@@ -308,7 +251,7 @@ class Fuzzer:
                                                                                    t.startswith("float"))])
             if name == "aabb":
                 other = self.pick(["uint8", "int32", "int64", "uint16"])
-            enc = _arr(a.astype(other))
+            enc = wire_array(a.astype(other))
             cat = "wrong_dtype"
         elif how == 2:  # shape does not match the number of data bytes
             shape = list(a.shape)
@@ -320,7 +263,7 @@ class Fuzzer:
             b = a.reshape(-1) if a.ndim > 1 else a.reshape(1, -1, 1)
             if name in ("rgb",) and self.rng.random() < 0.5:
                 b = np.concatenate([a, a[..., :1]], -1)  # RGBA
-            enc = _arr(b)
+            enc = wire_array(b)
             cat = "wrong_shape"
         elif how == 4:
             enc["shape"] = [int(x) for x in self.rng.integers(-5, 0, size=max(1, a.ndim))]
@@ -358,10 +301,10 @@ class Fuzzer:
                     b = np.zeros((4, 4) if name != "covariance" else (7, 7)) if name != "aabb" else np.zeros((3, 3))
                 elif name in ("points", "colors"):
                     b = np.zeros((len(a) + 1, 3), a.dtype)  # points / colours counts differ
-            enc = _arr(b)
+            enc = wire_array(b)
             cat = "over_limit"
         d[name] = enc
-        return cat, _pack(d)
+        return cat, pack(d)
 
     def nonfinite(self, ch):
         """NaN / Inf (or a negative depth / a non-rigid pose) in a float field."""
@@ -382,19 +325,19 @@ class Fuzzer:
                 m[3] = self.pick([[0, 0, 0, 2.0], [1.0, 0, 0, 1], [0, 0, 0, 0]])
             else:
                 m[:3, :3] = 0
-            d[name] = _arr(m)
-            return "non_rigid_pose", _pack(d)
+            d[name] = wire_array(m)
+            return "non_rigid_pose", pack(d)
         if name == "depth" and self.rng.random() < 0.3:
             flat[int(self.rng.integers(flat.size))] = -self.rng.uniform(1e-6, 10)
-            d[name] = _arr(a)
-            return "negative_depth", _pack(d)
+            d[name] = wire_array(a)
+            return "negative_depth", pack(d)
         if name == "aabb" and self.rng.random() < 0.3:
-            d[name] = _arr(a[::-1].copy())  # min above max
-            return "inverted_aabb", _pack(d)
+            d[name] = wire_array(a[::-1].copy())  # min above max
+            return "inverted_aabb", pack(d)
         k = int(self.rng.integers(1, 4))
         flat[self.rng.integers(flat.size, size=k)] = self.pick([NAN, INF, -INF])
-        d[name] = _arr(a)
-        return "nonfinite", _pack(d)
+        d[name] = wire_array(a)
+        return "nonfinite", pack(d)
 
     def field_arrays(self, ch):
         """FieldSnapshot.arrays spoiled at the protocol level (decode must refuse)."""
@@ -405,17 +348,17 @@ class Fuzzer:
             k = self.pick(sorted(arrays))
             a = np.frombuffer(arrays[k]["data"], arrays[k]["dtype"]).reshape(arrays[k]["shape"]).copy()
             a.reshape(-1)[0] = self.pick([NAN, INF])
-            arrays[k] = _arr(a)
+            arrays[k] = wire_array(a)
         elif how == 1:
-            arrays[self.pick(["../x", "a b", "", "x" * 200, "k/../../etc"])] = _arr(np.ones(2, np.float32))
+            arrays[self.pick(["../x", "a b", "", "x" * 200, "k/../../etc"])] = wire_array(np.ones(2, np.float32))
         elif how == 2:
             d["arrays"] = self.pick([[1], "x", None, 5])
         elif how == 3:
             for i in range(P.MAX_FIELD_ARRAYS + 1):
-                arrays[f"x{i}"] = _arr(np.ones(1, np.float32))
+                arrays[f"x{i}"] = wire_array(np.ones(1, np.float32))
         else:
             arrays[self.pick(sorted(arrays))]["dtype"] = self.pick(BAD_DTYPE)
-        return "bad_field_arrays", _pack(d)
+        return "bad_field_arrays", pack(d)
 
     # -- driver
     def next(self, channel: str) -> tuple[str, bytes]:
@@ -618,7 +561,7 @@ def mapped(dataset):
     from services.mapper import MapperCore, MapperServiceOptions
 
     core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", points_interval=1e9, checkpoint_every=0))
-    _feed(core, dataset, range(6))
+    feed(core, dataset, range(6))
     core.handle("frames", P.encode(P.frame_from_dataset(dataset[6], seq=6)))
     assert core.mapper.initialized and core.ack == 5 and list(core.frames) == [6] and core.version == 2
     return core
@@ -644,7 +587,7 @@ def test_fuzz_mapper_core_10k_malformed_messages(mapped, dataset):
     assert len(cats) >= 25, cats
     _report("MapperCore.handle", cats, secs)
     # and it still works: the waiting frame 6 gets its pose, 7 completes a window
-    outs = _feed(core, dataset, [6, 7])
+    outs = feed(core, dataset, [6, 7])
     assert core.ack == 7 and any(ch == "field" for ch, _ in outs)
 
 
@@ -713,6 +656,18 @@ def _io_service(name: str, parser_args: list, add_args) -> tuple:
     return C.Service(name, args, session=_NoSession(), keys=P.Keys("fuzz"), install_signals=False), args
 
 
+def _fuzz_handler(name: str, svc, state: Callable[[], object], handle, seed: int, bases: dict, chans: list) -> None:
+    """N_FUZZ bad payloads on ``chans`` through ``handle(channel, data)``: all counted by ``svc``
+    (decode_errors = bad_input = sent) and ``state()`` unchanged."""
+    fz = Fuzzer(seed, {k: bases[k] for k in chans})
+    before, c0 = state(), svc.counters.snapshot()
+    cats, secs = _run_fuzz(handle, fz.stream(N_FUZZ, chans))
+    c1 = svc.counters.snapshot()
+    assert state() == before
+    assert c1["bad_input"] - c0.get("bad_input", 0) == N_FUZZ == c1["decode_errors"] - c0.get("decode_errors", 0)
+    _report(name, cats, secs)
+
+
 def test_fuzz_io_handlers_10k_malformed_messages_each(mapped, dataset, tmp_path):
     """io record, io view and io play decode what they hear in their handlers: 10,000 bad
     payloads each are all counted (decode_errors = bad_input = sent) and change nothing."""
@@ -743,15 +698,10 @@ def test_fuzz_io_handlers_10k_malformed_messages_each(mapped, dataset, tmp_path)
         return ({s: {k: (t, c.tobytes()) for k, (t, c) in d.items()} for s, d in rec.poses.items()},
                 rec.points.version, rec.points.points.tobytes(), peers.services())
 
-    chans = ["poses", "points", "status", "control"]
-    fz = Fuzzer(11, {k: bases[k] for k in chans})
-    before, c0 = rec_state(), svc.counters.snapshot()
-    cats, secs = _run_fuzz(lambda ch, d: record.handle_message(svc, rec, peers, ch, "fuzz", d, ["mapper"]),
-                           fz.stream(N_FUZZ, chans))
-    c1 = svc.counters.snapshot()
-    assert rec_state() == before and not (tmp_path / "rec" / "record.json").exists()
-    assert c1["bad_input"] - c0.get("bad_input", 0) == N_FUZZ == c1["decode_errors"] - c0.get("decode_errors", 0)
-    _report("io record handle_message", cats, secs)
+    _fuzz_handler("io record handle_message", svc, rec_state,
+                  lambda ch, d: record.handle_message(svc, rec, peers, ch, "fuzz", d, ["mapper"]), 11, bases,
+                  ["poses", "points", "status", "control"])
+    assert not (tmp_path / "rec" / "record.json").exists()
 
     # io view: a Viewer on a recording stream without a sink
     svc, _ = _io_service("view", ["--save", str(tmp_path / "x.rrd")], view.add_args)
@@ -767,15 +717,9 @@ def test_fuzz_io_handlers_10k_malformed_messages_each(mapped, dataset, tmp_path)
                                                                          if k.startswith("logged_")),
                 {k: svc.counters.get(k) for k in svc.counters.snapshot() if k.startswith("logged_")})
 
-    chans = ["frames", "poses", "points", "field", "status", "control"]
-    fz = Fuzzer(12, {k: bases[k] for k in chans})
-    before, c0 = view_state(), svc.counters.snapshot()
-    cats, secs = _run_fuzz(lambda ch, d: view.handle_message(svc, viewer, peers, ch, "fuzz", d, ["mapper"]),
-                           fz.stream(N_FUZZ, chans))
-    c1 = svc.counters.snapshot()
-    assert view_state() == before
-    assert c1["bad_input"] - c0.get("bad_input", 0) == N_FUZZ == c1["decode_errors"] - c0.get("decode_errors", 0)
-    _report("io view handle_message", cats, secs)
+    _fuzz_handler("io view handle_message", svc, view_state,
+                  lambda ch, d: view.handle_message(svc, viewer, peers, ch, "fuzz", d, ["mapper"]), 12, bases,
+                  ["frames", "poses", "points", "field", "status", "control"])
 
     # io play: its status and control callbacks (flow control, pause / stop / reset)
     svc, args = _io_service("play", ["--data", "unused"], play.add_args)
@@ -786,32 +730,12 @@ def test_fuzz_io_handlers_10k_malformed_messages_each(mapped, dataset, tmp_path)
         return (player.peers.services(), player.peers.acked("mapper"), dict(player.floor), player.paused.is_set(),
                 player.stop_requested.is_set(), player.reset_requested.is_set())
 
-    fz = Fuzzer(13, {k: bases[k] for k in ("status", "control")})
-    before, c0 = play_state(), svc.counters.snapshot()
     handlers = {"status": player._on_status, "control": player._on_control}
-    cats, secs = _run_fuzz(lambda ch, d: handlers[ch]("fuzz", d), fz.stream(N_FUZZ, ["status", "control"]))
-    c1 = svc.counters.snapshot()
-    assert play_state() == before
-    assert c1["bad_input"] - c0.get("bad_input", 0) == N_FUZZ == c1["decode_errors"] - c0.get("decode_errors", 0)
-    _report("io play status/control callbacks", cats, secs)
+    _fuzz_handler("io play status/control callbacks", svc, play_state, lambda ch, d: handlers[ch]("fuzz", d), 13,
+                  bases, ["status", "control"])
 
 
 # ============================================================================ 1b. fuzz through zenoh
-def _conf(listen=None, connect=None):
-    return C.zenoh_config("peer", listen=listen or [], connect=connect or [], multicast=False)
-
-
-@pytest.fixture
-def zpair():
-    """Two zenoh peers in this process over a free loopback port (no router)."""
-    ep = f"tcp/127.0.0.1:{C.free_port()}"
-    a = zenoh.open(_conf(listen=[ep]))
-    b = zenoh.open(_conf(connect=[ep]))
-    yield a, b, ep
-    b.close()
-    a.close()
-
-
 class StatusWatch:
     """The newest Status of one service heard on the bus, with a deadline-bounded wait."""
 
@@ -837,49 +761,27 @@ class StatusWatch:
             return self.latest
 
 
-def _start_thread(target, *args, **kw):
-    errors: list = []
-
-    def run():
-        try:
-            target(*args, **kw)
-        except BaseException as e:  # noqa: BLE001 - surfaced by the test
-            errors.append(e)
-
-    t = threading.Thread(target=run, daemon=True)
-    t.start()
-    return t, errors
-
-
 def test_fuzz_500_malformed_messages_through_zenoh_to_a_running_mapper(dataset, tmp_path, zpair):
     """The zenoh shell of the mapper (a real service, in-process peer) survives 500 bad payloads on
     frames / poses / control, counts every one in its published Status, and its map is untouched
     (the map/latest answer is byte-identical before and after); then it maps on."""
-    import yaml
-
     from services.mapper.__main__ import main as mapper_main
 
     a, b, _ = zpair
     keys = P.Keys("fz")
-    cfg = tmp_path / "m.yaml"
-    cfg.write_text(yaml.safe_dump(SMALL_MAPPER))
+    cfg = mapper_yaml(tmp_path)
     watch = StatusWatch(b, keys.status("mapper"))
-    thread, errors = _start_thread(mapper_main, ["--poses", "gt", "--config", str(cfg), "--points-interval", "1000",
-                                                 "--checkpoint-every", "0", "--status-interval", "0.1"],
-                                   session=a, keys=keys)
+    thread, errors = start_thread(mapper_main, ["--poses", "gt", "--config", str(cfg), "--points-interval", "1000",
+                                                "--checkpoint-every", "0", "--status-interval", "0.1"],
+                                  session=a, keys=keys)
     watch.wait(lambda s: s.state == "running", what="mapper up")
-    pubs = {ch: b.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
-            for ch, k in (("frames", keys.frames), ("poses", keys.poses("gt")), ("control", keys.control))}
-    end = time.monotonic() + TIMEOUT
-    while not all(p.matching_status.matching for p in pubs.values()):
-        assert time.monotonic() < end, "mapper subscriptions never matched"
-        time.sleep(0.01)
+    prod = GtProducer(b, keys, dataset)
+    pubs = {"frames": prod.pf, "poses": prod.pp, "control": prod.pc}
+    wait_matching(*pubs.values(), timeout=TIMEOUT, what="mapper subscriptions")
 
     def send_valid(ids):
         for i in ids:
-            f = dataset[i]
-            pubs["poses"].put(P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
-            pubs["frames"].put(P.encode(P.frame_from_dataset(f, seq=i)))
+            prod.send(i)
 
     send_valid(range(6))  # init (4 frames) + one window
     st = watch.wait(lambda s: s.frame_seq == 5 and s.counters.get("windows") == 2, what="first map")
@@ -928,13 +830,6 @@ def test_fuzz_500_malformed_messages_through_zenoh_to_a_running_mapper(dataset, 
 
 
 # ============================================================================ subprocess helpers
-def _env():
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    env["PYTHONUNBUFFERED"] = "1"
-    return env
-
-
 class Svc:
     """A service as a real OS process, with its status file and log (for the reliability tests)."""
 
@@ -950,7 +845,8 @@ class Svc:
             net += ["--connect", ",".join(connect)]
         self._log = open(self.log_path, "ab")
         self.argv = [sys.executable, "-m"] + argv + net
-        self.popen = subprocess.Popen(self.argv, cwd=ROOT, env=_env(), stdout=self._log, stderr=subprocess.STDOUT)
+        self.popen = subprocess.Popen(self.argv, cwd=ROOT, env=subprocess_env(), stdout=self._log,
+                                      stderr=subprocess.STDOUT)
         self.pid = self.popen.pid
 
     def status(self) -> dict:
@@ -1007,10 +903,6 @@ def rss_kb(pid: int) -> int:
     raise RuntimeError(f"no VmRSS for {pid}")
 
 
-def _ep() -> str:
-    return f"tcp/127.0.0.1:{C.free_port()}"
-
-
 # ============================================================================ 2. overload
 OVERLOAD_FPS = 50.0  # the mapper below does ~4-5 frames/s on one thread here: playback ~10x faster
 OVERLOAD_SECONDS = 20.0
@@ -1023,16 +915,13 @@ def test_overload_playback_10x_faster_than_the_mapper_drops_oldest_and_rss_stays
     the mapper's bounded inbox drops the oldest frames (counted), every frame received is
     accounted for (dropped + consumed + still queued), and the mapper's RSS stays flat after
     warm-up while the offered load would have grown it by hundreds of MB."""
-    import yaml
-
     from fmapping.synthetic import generate_scene
 
     scene = tmp_path / "scene"
     generate_scene(scene, seed=3, frames=16, size=(160, 120), max_cloud_points=2000, mesh_spacing=0.2)
     frame_bytes = 160 * 120 * 3 + 160 * 120 * 4  # rgb uint8 + depth float32 per Frame message
-    cfg = tmp_path / "m.yaml"
-    cfg.write_text(yaml.safe_dump(dict(SMALL_MAPPER, iters_per_window=20)))
-    ep_m, ep_p = _ep(), _ep()
+    cfg = mapper_yaml(tmp_path, iters_per_window=20)
+    ep_m, ep_p = loopback_endpoint(), loopback_endpoint()
     mapper = Svc("mapper", ["services.mapper", "--poses", "gt", "--config", str(cfg), "--out", str(tmp_path / "out"),
                             "--threads", "1", "--no-mesh", "--points-interval", "2"], tmp_path, ep_m, interval=0.25)
     play = None
@@ -1092,25 +981,8 @@ def test_overload_playback_10x_faster_than_the_mapper_drops_oldest_and_rss_stays
 
 
 # ============================================================================ 3. crash and restart
-class Producer:
+class Producer(GtProducer):
     """The test as the frame + GT pose source of a mapper process (paced by its acknowledgement)."""
-
-    def __init__(self, session, keys: P.Keys, dataset):
-        self.ds = dataset
-        self.pf = session.declare_publisher(keys.frames, congestion_control=zenoh.CongestionControl.BLOCK)
-        self.pp = session.declare_publisher(keys.poses("gt"), congestion_control=zenoh.CongestionControl.BLOCK)
-        self.pc = session.declare_publisher(keys.control, congestion_control=zenoh.CongestionControl.BLOCK)
-
-    def wait_matched(self, timeout=TIMEOUT):
-        end = time.monotonic() + timeout
-        while not (self.pf.matching_status.matching and self.pp.matching_status.matching):
-            assert time.monotonic() < end, "no subscriber matched"
-            time.sleep(0.01)
-
-    def send(self, i: int) -> None:
-        f = self.ds[i]
-        self.pp.put(P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
-        self.pf.put(P.encode(P.frame_from_dataset(f, seq=i)))
 
     def stream(self, svc: "Svc", ids, in_flight: int = 2, stop_when: Optional[Callable[[dict], bool]] = None):
         """Send ``ids`` keeping at most ``in_flight`` frames beyond the service's ack; returns early
@@ -1131,7 +1003,7 @@ def test_checkpoint_write_is_atomic_when_the_process_dies_mid_write(dataset, tmp
 
     opts = dict(pose_source="gt", out=str(tmp_path), points_interval=1e9, checkpoint_every=1)
     core = MapperCore(small_cfg(), MapperServiceOptions(**opts))
-    _feed(core, dataset, range(6))  # init + 1 window: 2 checkpoints
+    feed(core, dataset, range(6))  # init + 1 window: 2 checkpoints
     ck = tmp_path / "checkpoint.pt"
     good = ck.read_bytes()
     real_save = torch.save
@@ -1143,7 +1015,7 @@ def test_checkpoint_write_is_atomic_when_the_process_dies_mid_write(dataset, tmp
 
     monkeypatch.setattr(torch, "save", dying_save)
     with pytest.raises(KeyboardInterrupt):
-        _feed(core, dataset, range(6, 8))  # the next window's checkpoint dies half-way
+        feed(core, dataset, range(6, 8))  # the next window's checkpoint dies half-way
     monkeypatch.setattr(torch, "save", real_save)
     assert ck.read_bytes() == good  # untouched: the half-written bytes went to the temp file only
     leftovers = list(tmp_path.glob(".checkpoint.pt.*.tmp"))
@@ -1162,19 +1034,16 @@ def test_mapper_kill9_resumes_from_the_last_checkpoint_losing_at_most_one_window
     """kill -9 of a mapper process busy in its third update; restarted with the same --out it
     resumes from the checkpoint of the second (the one in progress is the only loss), maps the
     rest, and its final map is bit-identical to an uninterrupted run (in-process reference)."""
-    import yaml
-
     from services.mapper import MapperCore, MapperServiceOptions
 
     over = {"iters_per_window": 40}  # ~0.4 s updates: the kill lands inside one
-    cfg = tmp_path / "m.yaml"
-    cfg.write_text(yaml.safe_dump(dict(SMALL_MAPPER, **over)))
+    cfg = mapper_yaml(tmp_path, **over)
     out = tmp_path / "out"
-    ep = _ep()
+    ep = loopback_endpoint()
     argv = ["services.mapper", "--poses", "gt", "--config", str(cfg), "--out", str(out), "--threads", "1", "--no-mesh",
             "--points-interval", "1000", "--keep-checkpoint"]
     keys = P.Keys("crash")
-    session = zenoh.open(_conf(connect=[ep]))
+    session = zenoh.open(peer_conf(connect=[ep]))
     mapper = Svc("mapper", argv, tmp_path, ep, ns="crash", interval=0.1)
     restarted = None
     try:
@@ -1223,7 +1092,7 @@ def test_mapper_kill9_resumes_from_the_last_checkpoint_losing_at_most_one_window
     # the uninterrupted reference, in this process
     ref = MapperCore(small_cfg(**over), MapperServiceOptions(pose_source="gt", points_interval=1e9,
                                                             checkpoint_every=0))
-    _feed(ref, dataset, range(14))
+    feed(ref, dataset, range(14))
     ref.finish()
     assert final["service"]["windows"] == ref.windows
     ref_field = ref.mapper.field.state_dict()
@@ -1243,13 +1112,10 @@ def test_restarted_tracker_process_resyncs_from_the_latest_snapshot_query(datase
     """A tracker process killed (-9) and started again while the mapper is idle gets the map only
     through the map/latest query: it reports the mapper's newest version at once, then answers
     the next frames (a first reference rendered from the map)."""
-    import yaml
-
-    cfg = tmp_path / "m.yaml"
-    cfg.write_text(yaml.safe_dump(SMALL_MAPPER))
-    ep_m, ep_t = _ep(), _ep()
+    cfg = mapper_yaml(tmp_path)
+    ep_m, ep_t = loopback_endpoint(), loopback_endpoint()
     keys = P.Keys("trk")
-    session = zenoh.open(_conf(connect=[ep_m]))
+    session = zenoh.open(peer_conf(connect=[ep_m]))
     tracked: "queue.Queue[P.Pose]" = queue.Queue()
     sub = session.declare_subscriber(keys.poses("tracker"), lambda s: tracked.put(P.decode(C.payload_bytes(s))))
     mapper = Svc("mapper", ["services.mapper", "--poses", "gt", "--config", str(cfg), "--threads", "1",
@@ -1306,17 +1172,14 @@ def test_every_service_stops_within_5_seconds_on_a_signal_while_busy(scene, tmp_
     signal at the same moment: each exits with code 0 within 5 s; the mapper first writes its
     current map and trajectory, record its trajectories, view its recording.
     (test_services.py covers a SIGTERM inside a mapping update.)"""
-    import yaml
-
     from fmapping.trajectory import read_tum_trajectory
 
-    cfg = tmp_path / "m.yaml"
-    cfg.write_text(yaml.safe_dump(SMALL_MAPPER))
+    cfg = mapper_yaml(tmp_path)
     out = tmp_path / "out"
     eps: list = []
 
     def start(name, argv):
-        ep = _ep()
+        ep = loopback_endpoint()
         s = Svc(name, argv, tmp_path, ep, list(eps), ns="sd")
         eps.append(ep)
         return s
@@ -1372,7 +1235,7 @@ def map_digest(scene_dir: str, frames: int = 10, threads: int = 1) -> str:
     torch.set_num_threads(threads)
     ds = open_dataset(scene_dir)
     core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", points_interval=1e9, checkpoint_every=0))
-    _feed(core, ds, range(frames))
+    feed(core, ds, range(frames))
     core.finish()
     h = hashlib.sha256()
     for k, v in sorted(core.mapper.field.state_dict().items()):
@@ -1396,8 +1259,8 @@ def test_same_map_in_another_process(scene):
     """A fresh interpreter (same torch build, one thread) maps to the same bits as this process."""
     code = ("import sys; sys.path[:0] = [sys.argv[1], sys.argv[1] + '/tests']; import test_reliability as T; "
             "print(T.map_digest(sys.argv[2], 8))")
-    r = subprocess.run([sys.executable, "-c", code, str(ROOT), str(scene)], cwd=ROOT, env=_env(), capture_output=True,
-                       text=True, timeout=300)
+    r = subprocess.run([sys.executable, "-c", code, str(ROOT), str(scene)], cwd=ROOT, env=subprocess_env(),
+                       capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     other, here = r.stdout.strip().splitlines()[-1], map_digest(str(scene), 8)
     print(f"\n[determinism] map digest: this process {here[:16]}, another process {other[:16]}")
@@ -1411,11 +1274,7 @@ def test_external_pose_producer_reports_the_status_name_the_launcher_waits_for(d
     from fmapping.launcher import EXTERNAL_SOURCE, play_wait_for
     from fmapping.trajectory import write_tum_trajectory
 
-    sys.path.insert(0, str(ROOT / "examples"))
-    try:
-        import publish_poses
-    finally:
-        sys.path.pop(0)
+    publish_poses = import_example("publish_poses")
     a, b, ep = zpair
     keys = P.Keys("ext")
     traj = tmp_path / "traj.txt"
@@ -1423,16 +1282,13 @@ def test_external_pose_producer_reports_the_status_name_the_launcher_waits_for(d
     watch = StatusWatch(a, keys.status(EXTERNAL_SOURCE))
     poses: "queue.Queue[P.Pose]" = queue.Queue()
     a.declare_subscriber(keys.poses("external"), lambda s: poses.put(P.decode(C.payload_bytes(s), P.Pose)))
-    thread, errors = _start_thread(publish_poses.main, ["--traj", str(traj), "--connect", ep, "--listen",
-                                                        _ep(), "--ns", "ext", "--status-interval", "0.1"])
+    thread, errors = start_thread(publish_poses.main, ["--traj", str(traj), "--connect", ep, "--listen",
+                                                       loopback_endpoint(), "--ns", "ext", "--status-interval", "0.1"])
     st = watch.wait(lambda s: s.state == "running", what="status/external")
     assert st.service == EXTERNAL_SOURCE and st.service in play_wait_for("external")
     assert play_wait_for("external", view=False) == ["mapper", "record", "external"]
     pub = a.declare_publisher(keys.frames, congestion_control=zenoh.CongestionControl.BLOCK)
-    end = time.monotonic() + TIMEOUT
-    while not pub.matching_status.matching:
-        assert time.monotonic() < end
-        time.sleep(0.01)
+    wait_matching(pub, timeout=TIMEOUT)
     pub.put(P.encode(P.frame_from_dataset(dataset[4], seq=4)))
     p = poses.get(timeout=TIMEOUT)
     assert p.seq == 4 and p.source == "external" and p.quality is None

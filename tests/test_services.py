@@ -3,7 +3,6 @@ the mapper / tracker cores, flow control, late joiners, checkpoints, and a short
 ``fmapping up`` of real subprocesses. Synchronisation uses events and queues with timeouts."""
 from __future__ import annotations
 
-import os
 import queue
 import shutil
 import signal
@@ -11,7 +10,6 @@ import subprocess
 import sys
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,73 +18,12 @@ import torch
 zenoh = pytest.importorskip("zenoh")
 
 from fmapping import protocol as P  # noqa: E402
+from service_helpers import (ROOT, SMALL_MAPPER, GtProducer, feed, import_example, loopback_endpoint,  # noqa: E402
+                             mapper_yaml, peer_conf, small_cfg, start_thread, subprocess_env, wait_matching)
 from services import common as C  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT = 30.0
-
-SMALL_MAPPER = {
-    "init_frames": 4, "init_rounds": [[0, 16], [3, 16]], "init_iters_per_round": 4,
-    "window_size": 6, "n_global_keyframes": 2, "new_frames_per_window": 2, "iters_per_window": 2,
-    "keyframe_every": 2, "rays_per_iter": 96, "n_coarse": 12, "n_fine": 4, "final_global_iters": 2,
-    "device": "cpu", "seed": 0,
-    "field": {"resolution": 12, "density_components": 4, "appearance_components": 4, "app_features": 8, "hidden": 8},
-}
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    """A tiny synthetic RGB-D scene with GT poses (shared by the tests of this module)."""
-    from fmapping.synthetic import generate_scene
-
-    out = tmp_path_factory.mktemp("scene") / "s"
-    generate_scene(out, seed=2, frames=14, size=(64, 48), max_cloud_points=2000, mesh_spacing=0.2)
-    return out
-
-
-@pytest.fixture(scope="module")
-def dataset(scene):
-    from fmapping.datasets import open_dataset
-
-    return open_dataset(scene)
-
-
-def small_cfg():
-    from fmapping.config import merge
-    from fmapping.mapper import MapperConfig
-
-    return merge(MapperConfig(), SMALL_MAPPER)
-
-
-def _conf(listen=None, connect=None):
-    return C.zenoh_config("peer", listen=listen or [], connect=connect or [], multicast=False)
-
-
-@pytest.fixture
-def zpair():
-    """Two zenoh peers in this process: ``a`` listens on a free loopback port, ``b`` connects to it."""
-    port = C.free_port()
-    ep = f"tcp/127.0.0.1:{port}"
-    a = zenoh.open(_conf(listen=[ep]))
-    b = zenoh.open(_conf(connect=[ep]))
-    yield a, b, ep
-    b.close()
-    a.close()
-
-
-def _wait_matching(pub, timeout=TIMEOUT):
-    end = time.monotonic() + timeout
-    while not pub.matching_status.matching:
-        assert time.monotonic() < end, "subscriber never matched"
-        time.sleep(0.01)
+pytestmark = pytest.mark.usefixtures("one_thread")  # scene, dataset, zpair: conftest.py
 
 
 # ---------------------------------------------------------------------------- plumbing
@@ -96,7 +33,7 @@ def test_frame_pub_sub_round_trip_over_zenoh(zpair):
     got: "queue.Queue[bytes]" = queue.Queue()
     sub = b.declare_subscriber(keys.frames, lambda s: got.put(C.payload_bytes(s)))
     pub = a.declare_publisher(keys.frames)
-    _wait_matching(pub)
+    wait_matching(pub, timeout=TIMEOUT)
     rng = np.random.default_rng(0)
     f = P.Frame(seq=7, timestamp=0.25, rgb=rng.integers(0, 256, (48, 64, 3), dtype=np.uint8),
                 camera={"fx": 50.0, "fy": 50.0, "cx": 31.5, "cy": 23.5, "width": 64, "height": 48},
@@ -136,6 +73,35 @@ def test_inbox_drops_oldest_and_serves_by_priority():
     assert box.get(timeout=TIMEOUT) == ("frames", 9)  # wakes on put
 
 
+def test_core_helpers_camera_gate_rigid_pose_names_and_stop_kind(dataset):
+    good = P.decode(P.encode(P.frame_from_dataset(dataset[0], seq=0)))
+    core = C.ServiceCore()
+    assert core.frame_camera(good) == good.camera and core.camera_dict is None  # the caller fixes it
+    core.camera_dict = good.camera
+    other = P.Frame(seq=1, timestamp=0.0, rgb=good.rgb, camera=dict(good.camera, fx=good.camera["fx"] + 1))
+    assert core.frame_camera(other) is None and core.frame_camera(good) is good.camera
+    assert core.counters.snapshot() == {"rejected_frames": 1, "bad_input": 1} and "frame 1: camera" in core.last_error
+    with pytest.raises(ValueError, match="distortion"):
+        C.usable_camera(dict(good.camera, dist=[0.1, 0, 0, 0]), undistorted=True)
+    assert C.usable_camera(dict(good.camera, dist=[0.1, 0, 0, 0]))["dist"] == [0.1, 0.0, 0.0, 0.0]
+    with pytest.raises(ValueError, match="unusable camera"):
+        C.usable_camera(dict(good.camera, fx=-1.0))
+    # rigid_pose: the nearest rotation (polar factor) of a perturbed one, translation kept
+    c2w = dataset[3].c2w
+    noisy = c2w.copy()
+    noisy[:3, :3] += 1e-3 * np.random.default_rng(0).standard_normal((3, 3))
+    noisy[3] = [1e-9, 0, 0, 1]
+    r = C.rigid_pose(noisy)
+    np.testing.assert_allclose(r[:3, :3].T @ r[:3, :3], np.eye(3), atol=1e-12)
+    assert np.linalg.det(r[:3, :3]) > 0 and np.abs(r[:3, :3] - c2w[:3, :3]).max() < 3e-3
+    assert r[:3, 3].tolist() == noisy[:3, 3].tolist() and r[3].tolist() == [0, 0, 0, 1]
+    np.testing.assert_allclose(C.rigid_pose(c2w), c2w, atol=1e-12)
+    assert C.names(" mapper, ,tracker ") == ["mapper", "tracker"] and C.names(None) == C.names("") == []
+    end = P.Control("stop", {"reason": "end"})
+    assert (C.stop_kind(end, ["mapper"]), C.stop_kind(end, []), C.stop_kind(P.Control("stop"), ["mapper"]),
+            C.stop_kind(P.Control("save"), ["mapper"])) == ("end", "stop", "stop", None)
+
+
 def test_zenoh_config_and_yaml(tmp_path):
     import argparse
 
@@ -153,17 +119,6 @@ def test_zenoh_config_and_yaml(tmp_path):
 
 
 # ---------------------------------------------------------------------------- mapper core
-def _feed(core, ds, ids, source="gt", pose_first=True):
-    outs = []
-    for i in ids:
-        f = ds[i]
-        pose = P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source=source))
-        frame = P.encode(P.frame_from_dataset(f, seq=i))
-        for ch, data in ((("poses", pose), ("frames", frame)) if pose_first else (("frames", frame), ("poses", pose))):
-            outs += core.handle(ch, data)
-    return outs
-
-
 def _field_state(core):
     return {k: v.clone() for k, v in core.mapper.field.state_dict().items()}
 
@@ -174,7 +129,7 @@ def test_mapper_core_gt_snapshots_rebuild_the_field_and_bad_input_changes_nothin
 
     core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", out=str(tmp_path), points_interval=1e9,
                                                         checkpoint_every=0))
-    outs = _feed(core, dataset, range(8))
+    outs = feed(core, dataset, range(8))
     snaps = [m for ch, m in outs if ch == "field"]
     assert [s.version for s in snaps] == list(range(1, len(snaps) + 1)) and len(snaps) == 3  # init + 2 windows
     assert core.ack == 7 and snaps[-1].frame_seq == 7
@@ -216,14 +171,14 @@ def test_mapper_core_external_source_waits_for_its_poses(dataset):
 
     core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="external", points_interval=1e9,
                                                         checkpoint_every=0))
-    _feed(core, dataset, range(3), source="gt")  # GT poses are not what this mapper listens to
+    feed(core, dataset, range(3), source="gt")  # GT poses are not what this mapper listens to
     assert core.ack == -1 and len(core.frames) == 3 and core.counters.get("ignored_poses") == 3
     for i in range(3):  # poses after their frames, out of order
         f = dataset[2 - i]
         core.handle("poses", P.encode(P.Pose(seq=2 - i, timestamp=f.timestamp, c2w=f.c2w, source="external")))
     assert core.ack == 2 and core.counters.get("frames_posed") == 3
     # an unusable pose (quality 0) after init makes the frame skipped instead of waited for
-    outs = _feed(core, dataset, range(3, 5), source="external")
+    outs = feed(core, dataset, range(3, 5), source="external")
     assert core.mapper.initialized and any(ch == "field" for ch, _ in outs)
     f = dataset[5]
     core.handle("frames", P.encode(P.frame_from_dataset(f, seq=5)))
@@ -236,7 +191,7 @@ def test_mapper_checkpoint_resume(dataset, tmp_path):
 
     opts = dict(pose_source="gt", out=str(tmp_path), points_interval=1e9, checkpoint_every=1)
     a = MapperCore(small_cfg(), MapperServiceOptions(**opts))
-    _feed(a, dataset, range(6))
+    feed(a, dataset, range(6))
     ck = tmp_path / "checkpoint.pt"
     assert ck.is_file() and not list(tmp_path.glob(".*.tmp"))
     b = MapperCore(small_cfg(), MapperServiceOptions(**opts))
@@ -246,8 +201,8 @@ def test_mapper_checkpoint_resume(dataset, tmp_path):
     assert all(torch.equal(sa[k], sb[k]) for k in sa)
     assert b.latest_field_bytes is not None and P.decode(b.latest_field_bytes).version == a.version
     # frames it already has are ignored; new ones continue the same way in both
-    _feed(b, dataset, range(4, 8))
-    _feed(a, dataset, range(6, 8))
+    feed(b, dataset, range(4, 8))
+    feed(a, dataset, range(6, 8))
     assert b.counters.get("stale_frames") == 2 and a.ack == b.ack == 7
     sa, sb = _field_state(a), _field_state(b)
     assert all(torch.equal(sa[k], sb[k]) for k in sa)
@@ -260,7 +215,7 @@ def test_mapper_finish_writes_outputs(dataset, tmp_path):
 
     core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", out=str(tmp_path), points_interval=1e9,
                                                         mesh_resolution=24))
-    _feed(core, dataset, range(6))
+    feed(core, dataset, range(6))
     outs = core.finish()
     assert core.finished and any(ch == "points" for ch, _ in outs) and core.finish() == []
     ts, c2w = read_tum_trajectory(tmp_path / "traj.txt")
@@ -275,7 +230,7 @@ def test_mapper_core_skips_a_frame_whose_pose_never_comes(dataset):
     now = [0.0]
     core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="external", points_interval=1e9,
                                                         checkpoint_every=0, pose_timeout=30.0), clock=lambda: now[0])
-    _feed(core, dataset, range(2), source="external")
+    feed(core, dataset, range(2), source="external")
     core.handle("frames", P.encode(P.frame_from_dataset(dataset[2], seq=2)))  # its producer died
     now[0] = 29.0
     assert core.tick() == [] and core.ack == 1
@@ -348,7 +303,7 @@ def test_restarted_tracker_resyncs_from_the_latest_snapshot(dataset, tmp_path):
     from services.tracker import TrackerCore
 
     mapper = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", points_interval=1e9, checkpoint_every=0))
-    _feed(mapper, dataset, range(6))
+    feed(mapper, dataset, range(6))
     snap = P.decode(mapper.latest_field_bytes, P.FieldSnapshot)
     assert snap.frame_seq == 5 and snap.frame_c2w is not None
     np.testing.assert_allclose(snap.frame_c2w, dataset[5].c2w, atol=1e-6)  # GT poses are kept as given
@@ -363,48 +318,29 @@ def test_restarted_tracker_resyncs_from_the_latest_snapshot(dataset, tmp_path):
 
 
 # ---------------------------------------------------------------------------- services over zenoh
-def _start(target, *args, **kw):
-    errors = []
-
-    def run():
-        try:
-            target(*args, **kw)
-        except BaseException as e:  # surfaced by the test
-            errors.append(e)
-
-    t = threading.Thread(target=run, daemon=True)
-    t.start()
-    return t, errors
-
-
 def test_mapper_service_publishes_snapshots_and_serves_late_joiners(dataset, tmp_path, zpair):
     from services.mapper.__main__ import main as mapper_main
 
     a, b, ep = zpair
     keys = P.Keys("t3")
-    cfg = tmp_path / "m.yaml"
-    import yaml
-
-    cfg.write_text(yaml.safe_dump(SMALL_MAPPER))
+    cfg = mapper_yaml(tmp_path)
     snaps: "queue.Queue[P.FieldSnapshot]" = queue.Queue()
     statuses: "queue.Queue[P.Status]" = queue.Queue()
     sub = b.declare_subscriber(keys.field, lambda s: snaps.put(P.decode(C.payload_bytes(s))))
     sub2 = b.declare_subscriber(keys.status("mapper"), lambda s: statuses.put(P.decode(C.payload_bytes(s))))
-    thread, errors = _start(mapper_main, ["--poses", "gt", "--config", str(cfg), "--out", str(tmp_path / "out"),
-                                          "--points-interval", "1000", "--no-mesh", "--status-interval", "0.2"],
-                            session=a, keys=keys)
+    thread, errors = start_thread(mapper_main, ["--poses", "gt", "--config", str(cfg), "--out", str(tmp_path / "out"),
+                                                "--points-interval", "1000", "--no-mesh", "--status-interval", "0.2"],
+                                  session=a, keys=keys)
     assert statuses.get(timeout=TIMEOUT).service == "mapper"  # up: its subscriptions are declared
-    pub_f = b.declare_publisher(keys.frames, congestion_control=zenoh.CongestionControl.BLOCK)
-    pub_p = b.declare_publisher(keys.poses("gt"), congestion_control=zenoh.CongestionControl.BLOCK)
+    prod = GtProducer(b, keys, dataset)
+    prod.wait_matched(TIMEOUT)
     for i in range(6):
-        f = dataset[i]
-        pub_p.put(P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
-        pub_f.put(P.encode(P.frame_from_dataset(f, seq=i)))
-    pub_f.put(b"not a message")
+        prod.send(i)
+    prod.pf.put(b"not a message")
     versions = [snaps.get(timeout=120).version for _ in range(2)]  # init (4 frames) + one window (2 more)
     assert versions == [1, 2]
     # a late joiner (a third session) gets the latest snapshot by query
-    late = zenoh.open(_conf(connect=[ep]))
+    late = zenoh.open(peer_conf(connect=[ep]))
     try:
         data = C.query_latest(late, keys.latest, timeout=TIMEOUT)
         assert data is not None and P.decode(data, P.FieldSnapshot).version == 2
@@ -416,7 +352,7 @@ def test_mapper_service_publishes_snapshots_and_serves_late_joiners(dataset, tmp
         if st.counters.get("decode_errors", 0) >= 1 and st.frame_seq == 5:
             break
         assert time.monotonic() < end
-    b.declare_publisher(keys.control).put(P.encode(P.Control("stop", {"reason": "end", "last_seq": 5})))
+    prod.pc.put(P.encode(P.Control("stop", {"reason": "end", "last_seq": 5})))
     thread.join(timeout=120)
     assert not thread.is_alive() and not errors
     assert (tmp_path / "out" / "map.ply").is_file() and (tmp_path / "out" / "traj.txt").is_file()
@@ -456,9 +392,9 @@ def test_play_flow_control_bounds_frames_in_flight(zpair):
     gt: "queue.Queue[bytes]" = queue.Queue()
     b.declare_subscriber(keys.poses("gt"), lambda s: gt.put(C.payload_bytes(s)))
     status_pub = b.declare_publisher(keys.status("mapper"))
-    thread, errors = _start(play_main, ["--data", "unused", "--window", "3", "--ack-from", "mapper",
-                                        "--ack-timeout", "60", "--status-interval", "0.2"],
-                            session=a, keys=keys, dataset=ds)
+    thread, errors = start_thread(play_main, ["--data", "unused", "--window", "3", "--ack-from", "mapper",
+                                              "--ack-timeout", "60", "--status-interval", "0.2"],
+                                  session=a, keys=keys, dataset=ds)
     board = C.StatusBoard("mapper")  # a fake mapper: heartbeats its status like a real service
     board.update(state="running")
     stop_beat = threading.Event()
@@ -513,11 +449,7 @@ def test_recorder_writes_trajectories_and_points(tmp_path):
 
 
 def test_publish_poses_example_matches_frames_by_time():
-    sys.path.insert(0, str(ROOT / "examples"))
-    try:
-        from publish_poses import PoseFeeder
-    finally:
-        sys.path.pop(0)
+    PoseFeeder = import_example("publish_poses").PoseFeeder
     c2w = np.stack([np.eye(4)] * 3)
     c2w[:, 0, 3] = [0.0, 1.0, 2.0]
     feed = PoseFeeder(np.array([0.0, 0.1, 0.2]), c2w, max_dt=0.02)
@@ -527,15 +459,9 @@ def test_publish_poses_example_matches_frames_by_time():
 
 
 # ---------------------------------------------------------------------------- processes
-def _env():
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    return env
-
-
 def test_service_entry_points_have_help():
-    r = subprocess.run([sys.executable, "-m", "services.io", "--help"], cwd=ROOT, env=_env(), capture_output=True,
-                       text=True, timeout=120)
+    r = subprocess.run([sys.executable, "-m", "services.io", "--help"], cwd=ROOT, env=subprocess_env(),
+                       capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and "play" in r.stdout and "record" in r.stdout
     from services.io import play, record, view
     from services.mapper.__main__ import build_parser as mp
@@ -558,15 +484,12 @@ def test_sigterm_during_a_mapping_window_stops_within_5_seconds(dataset, tmp_pat
     trajectory and exits within 5 s (the heartbeat thread keeps reporting while it is busy)."""
     import json
 
-    import yaml
-
-    cfg = tmp_path / "slow.yaml"
-    cfg.write_text(yaml.safe_dump(dict(SMALL_MAPPER, init_iters_per_round=100000)))  # an init that never ends
+    cfg = mapper_yaml(tmp_path, "slow.yaml", init_iters_per_round=100000)  # an init that never ends
     status = tmp_path / "mapper.json"
-    ep = f"tcp/127.0.0.1:{C.free_port()}"
+    ep = loopback_endpoint()
     p = subprocess.Popen([sys.executable, "-m", "services.mapper", "--listen", ep, "--ns", "t5", "--config", str(cfg),
                           "--status-file", str(status), "--out", str(tmp_path / "out"), "--status-interval", "0.2"],
-                         cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+                         cwd=ROOT, env=subprocess_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     s = None
     try:
         end = time.monotonic() + 120
@@ -574,15 +497,11 @@ def test_sigterm_during_a_mapping_window_stops_within_5_seconds(dataset, tmp_pat
             assert p.poll() is None, p.stdout.read().decode()
             assert time.monotonic() < end, "service did not start"
             time.sleep(0.05)
-        s = zenoh.open(_conf(connect=[ep]))
-        keys = P.Keys("t5")
-        pf = s.declare_publisher(keys.frames, congestion_control=zenoh.CongestionControl.BLOCK)
-        pp = s.declare_publisher(keys.poses("gt"), congestion_control=zenoh.CongestionControl.BLOCK)
-        _wait_matching(pf)
+        s = zenoh.open(peer_conf(connect=[ep]))
+        prod = GtProducer(s, P.Keys("t5"), dataset)
+        prod.wait_matched(TIMEOUT)
         for i in range(4):
-            f = dataset[i]
-            pp.put(P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
-            pf.put(P.encode(P.frame_from_dataset(f, seq=i)))
+            prod.send(i)
 
         def busy_in_init():
             try:
@@ -618,10 +537,11 @@ def test_fmapping_up_end_to_end(scene, tmp_path):
     from fmapping.trajectory import read_tum_trajectory
 
     cfg = tmp_path / "up.yaml"
-    cfg.write_text(yaml.safe_dump({"mapper": SMALL_MAPPER, "launcher": {"timeout": 240, "threads": 1}}))
+    mapper = {**SMALL_MAPPER, "init_iters_per_round": 40, "final_global_iters": 60}  # enough for a (coarse) map
+    cfg.write_text(yaml.safe_dump({"mapper": mapper, "launcher": {"timeout": 240, "threads": 1}}))
     out = tmp_path / "out"
     r = subprocess.run([sys.executable, "-m", "fmapping.cli", "up", "--data", str(scene), "--poses", "gt",
-                        "--out", str(out), "--config", str(cfg)], cwd=ROOT, env=_env(), capture_output=True,
+                        "--out", str(out), "--config", str(cfg)], cwd=ROOT, env=subprocess_env(), capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     for name in ("map.ply", "mesh.ply", "traj.txt", "run.rrd", "stats.json", "record/traj.txt", "up.json"):
@@ -634,6 +554,14 @@ def test_fmapping_up_end_to_end(scene, tmp_path):
     ds = open_dataset(scene)
     np.testing.assert_allclose(c2w_rec, np.stack([ds[i].c2w for i in range(len(ds))]), atol=1e-6)
     assert (out / "run.rrd").stat().st_size > 1000
+    # the launcher hands the mapper the scene's box (the init frames' frusta would miss most of the room)
+    b = ds.meta["scene"]["bbox"]
+    box = np.asarray(yaml.safe_load((out / "config" / "mapper.yaml").read_text())["bbox"])
+    np.testing.assert_allclose(box, [np.subtract(b["min"], 0.1), np.add(b["max"], 0.1)], atol=1e-9)
+    from fmapping.ply import read_ply
+
+    pts = read_ply(out / "map.ply").points
+    assert len(pts) > 100 and ((pts > box[0] - 1e-3) & (pts < box[1] + 1e-3)).all()
 
 
 def test_docker_compose_config_validates():

@@ -42,12 +42,26 @@ def _args(data, out, cfg, **kw):
     return a
 
 
-def test_slam_rgb_only_end_to_end(scene, tmp_path):
-    from fmapping.slam import run_slam
+def test_slam_rgb_only_end_to_end(scene, tmp_path, monkeypatch):
+    import fmapping.slam as slam
 
+    calls = []
+
+    def fake_writer(mapper, poses, camera, out, **kw):  # the real export takes ~1 min here
+        calls.append((mapper, poses, kw))
+        return {"points": 0, "mesh_vertices": 0, "mesh_faces": 0, "seconds": 0.0}
+
+    monkeypatch.setattr(slam, "write_map_outputs", fake_writer)
     root, cfg = scene
-    stats = run_slam(_args(root, tmp_path / "out", cfg))
+    stats = slam.run_slam(_args(root, tmp_path / "out", cfg, export=True))
     s = stats["summary"]
+    # the export sees the keyframe and window views, written in the output frame: scaled about frame 0
+    (mapper, poses, kw), = calls
+    assert set(poses) == set(mapper.keyframe_ids()) | set(mapper.window_ids())
+    _, gt = read_tum_trajectory(root / "groundtruth.txt")
+    np.testing.assert_allclose(kw["center"], gt[0][:3, 3], atol=1e-6)
+    assert kw["scale"] == stats["output_scale"]
+    assert stats["export"]["points"] == 0 and "recon" not in stats  # an empty map is not scored
     ts, est = read_tum_trajectory(tmp_path / "out" / "traj.txt")
     assert len(ts) == 40
     on_disk = json.loads((tmp_path / "out" / "stats.json").read_text())
@@ -58,18 +72,28 @@ def test_slam_rgb_only_end_to_end(scene, tmp_path):
     assert s["ate_sim3_rmse_m"] < 0.02, s
     assert s["ate_none_rmse_m"] < 0.04, s
     assert len(stats["windows"]) >= 2  # the mapper ran its init and on-the-fly windows
+    # the orientation-only fit is reported next to the position-aligned rotation error
+    assert 0 <= s["ate_rot_fit_deg"] == stats["ate"]["se3"]["rot_fit_mean_deg"] < 5.0, s
 
 
-def test_slam_with_gt_poses_writes_them(scene, tmp_path):
-    from fmapping.slam import run_slam
+def test_slam_cli_gt_poses_no_export_writes_trajectory_and_stats_only(scene, tmp_path, capsys):
+    from fmapping.cli import build_parser, main
 
     root, cfg = scene
-    stats = run_slam(_args(root, tmp_path / "gt", cfg, poses="gt", max_frames=12))
-    _, est = read_tum_trajectory(tmp_path / "gt" / "traj.txt")
+    assert build_parser().parse_args(["slam", "--data", "d", "--out", "o"]).export is True
+    out = tmp_path / "gt"
+    code = main(["slam", "--data", str(root), "--out", str(out), "--config", str(cfg), "--poses", "gt",
+                 "--max-frames", "12", "--device", "cpu", "--no-export"])
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out)
+    _, est = read_tum_trajectory(out / "traj.txt")
     _, gt = read_tum_trajectory(root / "groundtruth.txt")
-    assert len(est) == 12
+    assert len(est) == 12 and summary["frames"] == 12
     np.testing.assert_allclose(est, gt[:12], atol=1e-6)
-    assert stats["summary"]["ate_none_rmse_m"] < 1e-6
+    assert summary["ate_none_rmse_m"] < 1e-6 and summary["ate_rot_fit_deg"] < 1e-4
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["export"] is None and stats["config"]["export"] is False and "recon" not in stats
+    assert not (out / "map.ply").exists() and not (out / "mesh.ply").exists()
 
 
 def test_slam_bad_inputs_are_named(scene, tmp_path):
@@ -82,3 +106,98 @@ def test_slam_bad_inputs_are_named(scene, tmp_path):
     bad.write_text("tracker:\n  no_such_key: 1\n")
     with pytest.raises(ValueError, match="no_such_key"):
         run_slam(_args(root, tmp_path / "y", bad))
+
+
+
+# ----------------------------------------------------------------------------- output writing shared with `fmapping map`
+def _fake_exporters(monkeypatch, cloud, mesh):
+    """Replace the (slow, separately tested) exporters by functions returning ``cloud`` / ``mesh``
+    and recording their arguments; the mesh one also calls the culling render it is given."""
+    import fmapping.export as export
+
+    seen = {}
+
+    def point_cloud(source, poses, camera, near, far, n_samples=None, n_importance=None):
+        seen["cloud"] = dict(source=source, poses=poses, near=near, far=far, samples=(n_samples, n_importance))
+        return cloud[0].copy(), cloud[1]
+
+    def mesh_fn(field, aabb, resolution, poses, camera, render, near, far):
+        seen["mesh"] = dict(field=field, aabb=aabb, resolution=resolution, poses=poses, near=near, far=far)
+        seen["render"] = render(next(iter(poses.values())), camera.resized(8, 6))  # tiny: a real render is slow
+        return mesh[0].copy(), mesh[1], mesh[2]
+
+    monkeypatch.setattr(export, "export_point_cloud", point_cloud)
+    monkeypatch.setattr(export, "export_mesh", mesh_fn)
+    return seen
+
+
+def test_write_map_outputs_writes_both_plys_in_the_output_frame(tmp_path, monkeypatch):
+    import types
+
+    from fmapping.camera import PinholeCamera
+    from fmapping.pipeline import write_map_outputs
+    from fmapping.ply import read_ply
+
+    rng = np.random.default_rng(0)
+    pts, cols = rng.normal(size=(50, 3)), rng.integers(0, 256, (50, 3), dtype=np.uint8)
+    verts, faces, vcols = rng.normal(size=(6, 3)), np.array([[0, 1, 2], [3, 4, 5]]), np.zeros((6, 3), np.uint8)
+    seen = _fake_exporters(monkeypatch, (pts, cols), (verts, faces, vcols))
+    renders = []
+
+    def render(c2w, cam, samples=None):
+        renders.append(samples)
+        return {"rgb": np.zeros((2, 2, 3)), "depth": np.full((2, 2), 1.5), "depth_normalized": np.full((2, 2), 3.0),
+                "acc": np.full((2, 2), 0.5)}
+
+    mapper = types.SimpleNamespace(render=render, field="FIELD", aabb="AABB")
+    cam = PinholeCamera(20.0, 20.0, 8.0, 6.0, 16, 12)
+    poses = {3: np.eye(4), 7: np.eye(4)}
+    c = np.array([1.0, -2.0, 0.5])
+    res = write_map_outputs(mapper, poses, cam, tmp_path, near=0.2, far=5.0, cloud_samples=(8, 4),
+                            mesh_samples=(6, 2), mesh_resolution=17, center=c, scale=2.0)
+    assert {k: res[k] for k in ("points", "mesh_vertices", "mesh_faces")} == \
+        {"points": 50, "mesh_vertices": 6, "mesh_faces": 2}
+    cloud, mesh = read_ply(tmp_path / "map.ply"), read_ply(tmp_path / "mesh.ply")
+    np.testing.assert_allclose(cloud.points, c + 2.0 * (pts - c), rtol=1e-6, atol=1e-6)  # PLY stores float32
+    np.testing.assert_array_equal(cloud.colors, cols)
+    np.testing.assert_allclose(mesh.points, c + 2.0 * (verts - c), rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(mesh.faces, faces)
+    assert seen["cloud"]["samples"] == (8, 4) and seen["cloud"]["poses"] is poses and seen["cloud"]["near"] == 0.2
+    assert seen["mesh"]["resolution"] == 17 and seen["mesh"]["field"] == "FIELD" and seen["mesh"]["far"] == 5.0
+    # mesh culling sees the expected surface depth (depth / acc), rendered with the mesh samples
+    assert renders == [(6, 2)] and seen["render"]["depth"][0, 0] == 3.0 and seen["render"]["acc"][0, 0] == 0.5
+    # without a centre the points are written as given; without samples the exporter's defaults are used
+    write_map_outputs(mapper, poses, cam, tmp_path, near=0.2, far=5.0)
+    np.testing.assert_allclose(read_ply(tmp_path / "map.ply").points, pts, rtol=1e-6, atol=1e-6)
+    assert seen["cloud"]["samples"] == (None, None)
+
+
+def test_map_job_writes_outputs_and_scores_the_cloud(scene, tmp_path, monkeypatch):
+    import textwrap
+
+    import fmapping.pipeline as pipeline
+    from fmapping.ply import read_ply
+
+    monkeypatch.setattr(pipeline, "_heldout_psnr", lambda *a, **k: 12.5)  # 8 full renders: ~1 min on 2 cores
+
+    root, _ = scene
+    gt_cloud = read_ply(root / "gt_visible_cloud.ply")
+    # the "exported" map is the visible GT cloud itself: accuracy and completion 0 cm, ratio 100 %
+    seen = _fake_exporters(monkeypatch, (gt_cloud.points, np.full((len(gt_cloud.points), 3), 128, np.uint8)),
+                           (np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8)))
+    cfg = tmp_path / "map.yaml"
+    cfg.write_text(textwrap.dedent(TINY.replace("mapper:\n", "")))
+    out = tmp_path / "map"
+    args = argparse.Namespace(data=str(root), out=str(out), config=str(cfg), poses="gt", field=None,
+                              use_depth=False, device="cpu", camera=None, max_frames=12, quiet=True)
+    stats = pipeline.run_map(args)
+    s = json.loads((out / "stats.json").read_text())["summary"]
+    assert s == json.loads(json.dumps(stats["summary"]))
+    assert s["frames"] == 12 and s["points"] == len(gt_cloud.points) and s["psnr_heldout"] == 12.5
+    assert s["accuracy_cm"] == 0.0 and s["completion_cm"] == 0.0 and s["completion_ratio"] == 100.0
+    assert "recon_mesh" not in stats and stats["export"]["mesh_faces"] == 0  # an empty mesh is not scored
+    assert sorted(seen["cloud"]["poses"]) == [0, 3, 6, 9]  # every 3rd frame's view
+    _, traj = read_tum_trajectory(out / "traj.txt")
+    _, gt = read_tum_trajectory(root / "groundtruth.txt")
+    np.testing.assert_allclose(traj, gt[:12], atol=1e-6)
+    assert (out / "map.ply").is_file() and (out / "mesh.ply").is_file()

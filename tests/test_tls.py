@@ -15,7 +15,6 @@ import importlib.util
 import json
 import os
 import queue
-import socket
 import stat
 import sys
 import time
@@ -27,6 +26,8 @@ zenoh = pytest.importorskip("zenoh")
 pytest.importorskip("cryptography")
 from cryptography import x509  # noqa: E402
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID  # noqa: E402
+
+from services.common import free_port  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DEPLOY = REPO / "deploy" / "zenoh"
@@ -43,12 +44,6 @@ def _load_script():
 
 
 mtc = _load_script()
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def conf_from(path: Path, **inserts) -> "zenoh.Config":
@@ -84,6 +79,18 @@ def client_tls(ca, kp=None, verify=True):
     if kp is not None:
         t.update(connect_certificate=kp.cert, connect_private_key=kp.key)
     return t
+
+
+def mtls_listener(certs, stack, extra=None) -> tuple["zenoh.Session", int]:
+    """A peer listening with mutual TLS (the router's certificate) on a free loopback port: (session, port)."""
+    port = free_port()
+    return stack(zenoh.open(plain_conf("peer", listen=[f"tls/127.0.0.1:{port}"], tls=server_tls(certs),
+                                       extra=extra))), port
+
+
+def mtls_dialler(certs, stack, port: int, kp) -> "zenoh.Session":
+    """A peer dialling ``port`` (name verified) with client key pair ``kp`` (None: no certificate)."""
+    return stack(zenoh.open(plain_conf("peer", connect=[f"tls/localhost:{port}"], tls=client_tls(certs.ca, kp))))
 
 
 def deliver(sender, key: str, q: "queue.Queue", payload: bytes = b"x", timeout: float = 5.0):
@@ -247,12 +254,10 @@ def test_deploy_configs(certs):
 
 # ------------------------------------------------------------------------------ mutual TLS
 def test_mtls_peer_pair(certs, stack):
-    port = free_port()
-    a = stack(zenoh.open(plain_conf("peer", listen=[f"tls/127.0.0.1:{port}"], tls=server_tls(certs))))
+    a, port = mtls_listener(certs, stack)
     q = queue.Queue()
     stack(collector(a, f"{NS}/**", q))
-    b = stack(zenoh.open(plain_conf("peer", connect=[f"tls/localhost:{port}"],
-                                    tls=client_tls(certs.ca, certs.leaf["io"]))))
+    b = mtls_dialler(certs, stack, port, certs.leaf["io"])
     assert deliver(b, f"{NS}/frames", q, b"hello") == ("", f"{NS}/frames", b"hello")
     assert len(list(a.info.peers_zid())) == 1
 
@@ -273,8 +278,7 @@ def test_shipped_client_configs_as_peers(certs, stack):
 @pytest.mark.parametrize("who", ["no-certificate", "other-ca-certificate", "plain-tcp"])
 def test_client_without_valid_certificate_cannot_open(who, certs, other_certs, stack):
     """Against an mTLS listener, a client-mode session fails to open (zenoh.ZError)."""
-    port = free_port()
-    stack(zenoh.open(plain_conf("peer", listen=[f"tls/127.0.0.1:{port}"], tls=server_tls(certs))))
+    _, port = mtls_listener(certs, stack)
     if who == "plain-tcp":
         conf = plain_conf("client", connect=[f"tcp/127.0.0.1:{port}"])
     else:
@@ -288,12 +292,10 @@ def test_client_without_valid_certificate_cannot_open(who, certs, other_certs, s
 
 def test_peer_without_certificate_gets_nothing_through(certs, stack):
     """A peer-mode session opens anyway (peers retry in the background) but never joins."""
-    port = free_port()
-    a = stack(zenoh.open(plain_conf("peer", listen=[f"tls/127.0.0.1:{port}"], tls=server_tls(certs))))
+    a, port = mtls_listener(certs, stack)
     q = queue.Queue()
     stack(collector(a, f"{NS}/**", q))
-    b = stack(zenoh.open(plain_conf("peer", connect=[f"tls/localhost:{port}"],
-                                    tls=client_tls(certs.ca, None))))
+    b = mtls_dialler(certs, stack, port, None)
     b.put(f"{NS}/frames", b"intruder")
     with pytest.raises(queue.Empty):
         q.get(timeout=NEVER)
@@ -325,13 +327,10 @@ def test_verify_name_on_connect(tmp_path, stack):
 def test_max_message_size_drops_larger_messages(certs, stack):
     """transport/link/rx/max_message_size (set in every shipped file) drops oversized messages
     at the receiver; a small message sent after one on the same link still arrives."""
-    port = free_port()
-    a = stack(zenoh.open(plain_conf("peer", listen=[f"tls/127.0.0.1:{port}"], tls=server_tls(certs),
-                                    extra={"transport/link/rx/max_message_size": 200_000})))
+    a, port = mtls_listener(certs, stack, extra={"transport/link/rx/max_message_size": 200_000})
     q = queue.Queue()
     stack(collector(a, f"{NS}/frames", q))
-    b = stack(zenoh.open(plain_conf("peer", connect=[f"tls/localhost:{port}"],
-                                    tls=client_tls(certs.ca, certs.leaf["io"]))))
+    b = mtls_dialler(certs, stack, port, certs.leaf["io"])
     assert deliver(b, f"{NS}/frames", q, b"warm-up") is not None
     b.put(f"{NS}/frames", b"x" * 150_000)  # fragmented (> 64 KiB batch), under the limit
     b.put(f"{NS}/frames", b"FORGED" + b"x" * 1_000_000)  # over the limit
@@ -448,11 +447,8 @@ def test_peer_acl_by_common_name(certs, stack):
            "policies": [{"rules": ["frames"], "subjects": ["io"]}]}
     q = queue.Queue()
     for dialler, expect in (("io", True), ("mapper", False)):
-        port = free_port()
-        a = stack(zenoh.open(plain_conf("peer", listen=[f"tls/127.0.0.1:{port}"], tls=server_tls(certs),
-                                        extra={"access_control": acl})))
+        a, port = mtls_listener(certs, stack, extra={"access_control": acl})
         stack(collector(a, f"{NS}/frames", q, dialler))
-        b = stack(zenoh.open(plain_conf("peer", connect=[f"tls/localhost:{port}"],
-                                        tls=client_tls(certs.ca, certs.leaf[dialler]))))
+        b = mtls_dialler(certs, stack, port, certs.leaf[dialler])
         got = deliver(b, f"{NS}/frames", q, dialler.encode(), timeout=5 if expect else NEVER)
         assert (got is not None) == expect, dialler

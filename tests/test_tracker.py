@@ -342,3 +342,89 @@ def test_bundle_adjust_recovers_perturbed_geometry():
     assert dt < 1e-4 and dr < 1e-3
     np.testing.assert_allclose(res.points, pts, atol=1e-4)
     np.testing.assert_allclose(res.poses[0], poses[0], atol=1e-12)  # fixed
+
+
+# ----------------------------------------------------------------------------- black fill of undistorted frames
+def test_pyramid_masks_erode_fill_per_level():
+    cam = PinholeCamera(100.0, 100.0, 39.5, 29.5, 80, 60)
+    valid = np.ones((60, 80), bool)
+    valid[:, :20] = False  # black fill on the left
+    pyr = build_pyramid(np.full((60, 80), 0.5, np.float32), cam, 3, valid=valid)
+    assert [m.shape for m in pyr.masks] == [(60, 80), (30, 40), (15, 20)]
+    np.testing.assert_array_equal(pyr.masks[0], valid)
+    # a coarse pixel j covers fine pixels 2j-2..2j+2 (pyrDown's 5-tap kernel): valid iff 2j-2 >= 20
+    np.testing.assert_array_equal(pyr.masks[1][0], np.arange(40) * 2 - 2 >= 20)
+    np.testing.assert_array_equal(pyr.masks[2][0], np.arange(20) * 2 - 2 >= np.flatnonzero(pyr.masks[1][0])[0])
+    with pytest.raises(ValueError, match="valid mask"):
+        build_pyramid(np.zeros((60, 80), np.float32), cam, 2, valid=valid[:, :-1])
+
+
+def test_warp_residuals_mask_drops_points_on_fill():
+    rng = np.random.default_rng(3)
+    cam = PinholeCamera(60.0, 60.0, 31.5, 23.5, 64, 48)
+    lvl = with_gradients(rng.random((48, 64)).astype(np.float32))
+    mask = rng.random((48, 64)) > 0.3
+    pts = np.stack([rng.uniform(-1, 1, 400), rng.uniform(-0.8, 0.8, 400), rng.uniform(1.5, 3, 400)], -1)
+    t = exp_se3(np.array([0.02, -0.01, 0.03, 0.01, -0.02, 0.015]))
+    iref = rng.random(400).astype(np.float32)
+    r_all, _, v_all = warp_residuals(lvl, cam, pts, iref, t, np.zeros(2))
+    r_m, jac_m, v_m = warp_residuals(lvl, cam, pts, iref, t, np.zeros(2), mask=mask)
+    expect = np.zeros(400, bool)
+    for i, p in enumerate(pts @ t[:3, :3].T + t[:3, 3]):  # slow reference: project, round, look up
+        u, v = cam.fx * p[0] / p[2] + cam.cx, cam.fy * p[1] / p[2] + cam.cy
+        expect[i] = v_all[i] and bool(mask[int(np.floor(v + 0.5)), int(np.floor(u + 0.5))])
+    np.testing.assert_array_equal(v_m, expect)
+    assert 0 < v_m.sum() < v_all.sum()
+    np.testing.assert_allclose(r_m, r_all[np.flatnonzero(v_m[v_all])])
+    assert jac_m.shape == (v_m.sum(), 8)
+
+
+def test_tracker_ignores_black_fill_of_current_frame(scene_pair):
+    cam, c2w0, c2w1, rgb0, d0, rgb1, _ = scene_pair
+    filled = rgb1.copy()
+    filled[:, :40] = 0  # like the border of an undistorted image
+    ref = make_reference(rgb0, d0, cam, c2w0, levels=3, num_points=2000)
+    from fmapping.tracking.direct import image_valid_mask
+
+    masked = build_pyramid(to_gray(filled), cam, 3, valid=image_valid_mask(filled))
+    plain = build_pyramid(to_gray(filled), cam, 3)
+    res_m = align(ref, masked, np.eye(4), AlignConfig())
+    res_p = align(ref, plain, np.eye(4), AlignConfig())
+    dt, dr = pose_distance(c2w0 @ inv_pose(res_m.t_cr), c2w1)
+    assert dt < 0.003 and dr < 0.15, (dt, dr)
+    assert res_m.inlier_ratio > 0.9 and res_m.visible_ratio < 0.85
+    assert res_p.inlier_ratio < res_m.inlier_ratio - 0.1  # without the mask the fill counts as (outlier) residuals
+    tr = DirectTracker(cam, TrackerConfig(num_points=2000))  # the tracker builds the mask itself
+    tr.set_reference(rgb0, d0, c2w0, 0)
+    tr.observe(c2w0)
+    out = tr.track(filled)
+    assert not out.lost and out.inlier_ratio > 0.9
+    assert pose_distance(out.c2w, c2w1)[0] < 0.003
+
+
+def test_two_view_known_baseline_recovers_rotation_despite_outliers():
+    from fmapping.tracking.features import sampson_px, two_view_known_baseline
+
+    cam = PinholeCamera(517.3, 516.5, 318.6, 255.3, 640, 480)
+    rng = np.random.default_rng(0)
+    n = 150
+    pts = np.stack([rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.5, n), rng.uniform(1.5, 4, n)], -1)
+    c2w_b = exp_se3(np.array([0.02, 0.005, -0.01, 0.02, -0.3, 0.05]))  # 17 deg pan, 2 cm baseline
+
+    def proj(c2w):
+        w2c = inv_pose(c2w)
+        x = pts @ w2c[:3, :3].T + w2c[:3, 3]
+        return np.stack([cam.fx * x[:, 0] / x[:, 2] + cam.cx, cam.fy * x[:, 1] / x[:, 2] + cam.cy], -1)
+
+    ua, ub = proj(np.eye(4)), proj(c2w_b)
+    # exact pairs satisfy the epipolar constraint of the true pose
+    t_ab = inv_pose(c2w_b)
+    assert np.abs(sampson_px(cam, t_ab[:3, :3], c2w_b[:3, 3], ua, ub)).max() < 1e-6
+    ua = ua + rng.normal(0, 0.3, (n, 2))
+    ub = ub + rng.normal(0, 0.3, (n, 2))
+    ub[:15] += rng.normal(0, 20, (15, 2))  # gross outliers
+    est, inl = two_view_known_baseline(cam, ua, ub, c2w_b[:3, 3])
+    dt, dr = pose_distance(est, c2w_b)
+    assert dt < 1e-9 and dr < 0.05, (dt, dr)  # the centre is the given one; rotation from the tracks
+    assert inl[15:].mean() > 0.95 and inl[:15].sum() <= 3
+    assert two_view_known_baseline(cam, ua[:5], ub[:5], c2w_b[:3, 3]) is None

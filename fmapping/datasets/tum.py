@@ -2,11 +2,16 @@
 
 * ``rgb.txt`` / ``depth.txt``: ``timestamp path`` per line, paths relative to the folder.
   Every rgb entry is a frame; its depth is the nearest depth entry within 0.02 s
-  (None otherwise), its pose the nearest ground-truth row within 0.02 s (None
-  otherwise). ``associations.txt`` is not needed and is ignored.
+  (None otherwise). Its pose is interpolated at the rgb timestamp between the two
+  bracketing ground-truth rows (linear translation, slerp rotation) when they are at
+  most 0.02 s apart; otherwise (a gap in the ground truth, or outside its time range)
+  the nearest row within 0.02 s; otherwise None (see
+  :func:`fmapping.trajectory.interpolate_poses`; the counts go into
+  ``meta["groundtruth_association"]``). ``associations.txt`` is not needed and is ignored.
 * ``groundtruth.txt``: ``timestamp tx ty tz qx qy qz qw`` camera-to-world (optional).
 * Intrinsics: ``calib.txt`` when present (first line ``fx fy cx cy [k1 k2 p1 p2 [k3]]``,
-  optional line ``depth_factor F``), else the TUM table by sequence name
+  optional line ``depth_factor F``; a file holding just the named rig's own four numbers
+  gets that rig's distortion, see :func:`complete_tum_distortion`), else the TUM table by sequence name
   (freiburg1/2/3 or fr1/2/3 in the folder name), else freiburg1 without distortion.
   Depth factor 5000 raw units per metre unless ``calib.txt`` says otherwise.
 * Folders written by ``fmapping synth`` (``scene.json`` with ``"generator":
@@ -28,7 +33,7 @@ from fmapping.datasets._io import (
     make_camera, parse_floats, resolve_camera, scaled_default, text_lines,
 )
 from fmapping.datasets.base import DatasetError
-from fmapping.trajectory import associate, read_tum_trajectory
+from fmapping.trajectory import associate, interpolate_poses, read_tum_trajectory
 
 MAX_DT = 0.02  # seconds: association tolerance rgb <-> depth and rgb <-> ground truth
 TUM_DEPTH_FACTOR = 5000.0
@@ -109,6 +114,25 @@ def tum_camera(root: Path, size: tuple[int, int]) -> tuple[PinholeCamera, str, O
     return cam, source, note
 
 
+def complete_tum_distortion(root: Path, vals: list[float], size: tuple[int, int]) -> tuple[list[float], Optional[str]]:
+    """Add the TUM table's lens distortion to a ``calib.txt`` that gives only a rig's own ``fx fy cx cy``.
+
+    TUM RGB-D images are stored distorted. A ``calib.txt`` with exactly the four numbers of
+    the rig named in the folder (``fr1`` / ``freiburg1`` ...) at 640x480 describes those raw
+    images, so the rig's distortion applies (freiburg1: about 2.6 % radial at the middle of
+    the image edge; leaving it out costs several degrees of rotation when tracking). Any
+    other file is taken as written.
+    """
+    rig = sequence_rig(root.resolve().name)
+    if rig is None or len(vals) != 4 or tuple(size) != (640, 480):
+        return vals, None
+    k, dist = TUM_INTRINSICS[rig]
+    if dist is None or not np.allclose(vals, k, atol=0.05):
+        return vals, None
+    return [*vals, *dist], (f"calib.txt gives the TUM {rig} intrinsics without distortion; "
+                            f"using the {rig} distortion {list(dist)} of the TUM table")
+
+
 def read_scene_json(path: Path) -> Optional[dict]:
     if not path.is_file():
         return None
@@ -141,7 +165,10 @@ def load_tum(
         vals, cam_line, factor = read_calib(calib)
         depth_factor = factor or depth_factor
         if camera is None:
+            vals, note = complete_tum_distortion(root, vals, size)
             default, source = make_camera(vals, size, f"{calib}:{cam_line}"), str(calib)
+            if note:
+                meta["camera_note"] = note
     elif camera is None:
         default, source, note = tum_camera(root, size)
         if note:
@@ -170,9 +197,10 @@ def load_tum(
             g_ts, g_c2w = read_tum_trajectory(gt_txt)
         except ValueError as e:
             raise DatasetError(str(e)) from None
-        idx = associate(rgb_ts, g_ts, MAX_DT)
-        gt = [g_c2w[j].copy() if j >= 0 else None for j in idx]
+        c2w, how = interpolate_poses(rgb_ts, g_ts, g_c2w, MAX_DT)
+        gt = [c2w[i].copy() if h != "none" else None for i, h in enumerate(how)]
         meta["groundtruth"] = str(gt_txt)
+        meta["groundtruth_association"] = {k: int((how == k).sum()) for k in ("interpolated", "nearest", "none")}
 
     # --- fmapping synth output
     kind = "tum"

@@ -20,6 +20,9 @@ Conventions (stated once for all of :mod:`fmapping.field`):
 * Parameter groups: ``grid_parameters()`` (the spatial factors, lr 0.02 in the
   mapper) and ``decoder_parameters()`` (appearance basis + colour MLP, lr 0.001,
   frozen after the init stage). The two lists partition ``parameters()``.
+  ``grid_param_groups()`` splits the grid parameters into ``(params, lr multiplier)``
+  pairs; cp and mlp keep one group with multiplier 1, the dense grid raises the
+  learning rate of its density (see :mod:`.grid`), VM that of its planes (see :mod:`.vm`).
 """
 from __future__ import annotations
 
@@ -55,8 +58,11 @@ class FieldConfig:
     pe_freqs: int = 6              # iMAP-like baseline: PE frequencies of the position
     grid_features: int = 8         # dense grid baseline: feature channels besides density
     grid_resolution: int = 64      # dense grid baseline: nodes per axis (R^3 memory, so lower than `resolution`)
+    grid_init_density: float = 3e-3  # dense grid baseline: initial density (1/m) after the shift (5 m absorb 1.5 %)
+    grid_density_lr_scale: float = 30.0  # dense grid baseline: lr multiplier of the density grid (see field/grid.py)
     vm_density_components: int = 4     # VM: density components per plane/line pair (x3 axes)
     vm_appearance_components: int = 8  # VM: appearance components per plane/line pair (x3 axes)
+    vm_plane_lr_scale: float = 10.0    # VM: lr multiplier of the planes (1: one group, as TensoRF; see field/vm.py)
     seed: int = 0                  # parameter initialisation seed (a local generator, no global RNG)
 
     def validate(self) -> "FieldConfig":
@@ -77,6 +83,12 @@ class FieldConfig:
             raise ValueError("field.pe_freqs and field.view_pe_freqs must be >= 0")
         if not self.init_scale > 0:
             raise ValueError(f"field.init_scale must be > 0, got {self.init_scale}")
+        if not self.grid_init_density > 0:
+            raise ValueError(f"field.grid_init_density must be > 0, got {self.grid_init_density}")
+        if not self.vm_plane_lr_scale > 0:
+            raise ValueError(f"field.vm_plane_lr_scale must be > 0, got {self.vm_plane_lr_scale}")
+        if not self.grid_density_lr_scale > 0:
+            raise ValueError(f"field.grid_density_lr_scale must be > 0, got {self.grid_density_lr_scale}")
         return self
 
 
@@ -160,6 +172,11 @@ class Field(nn.Module):
 
     def decoder_parameters(self) -> list[nn.Parameter]:  # pragma: no cover
         raise NotImplementedError
+
+    def grid_param_groups(self) -> list[tuple[list[nn.Parameter], float]]:
+        """``(parameters, lr multiplier)`` pairs that partition :meth:`grid_parameters`
+        (default: one group, multiplier 1)."""
+        return [(list(self.grid_parameters()), 1.0)]
 
     def regularizer(self, kind: str = "tv") -> Tensor:  # pragma: no cover
         raise NotImplementedError

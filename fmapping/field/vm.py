@@ -12,6 +12,19 @@ planes cost ``R^2`` each, so 128 nodes give 12*3*128^2 ~ 0.59 M grid parameters,
 already ~35x the CP field. Plane sampling is bilinear ``grid_sample`` on a stacked
 ``(3, C, R, R)`` tensor (plane ``a``: width axis = first coordinate of the pair,
 height axis = second), lines as in :mod:`.cp`.
+
+Plane learning rate. A line node is shared by every point with that coordinate, but a
+plane node only by the points on one line through the box: each plane node gets a
+gradient in far fewer iterations (the dense grid's problem, see :mod:`.grid`, one
+dimension milder). With TensoRF's single lr (0.02) the planes hardly leave their random
+init within the mapper's budget, so the density is carried by the lines (extrusions of
+plane noise) and the quick bench's VM map was sparse: 23.6 % completion ratio, 6.0 cm
+accuracy, 24.5 cm completion, 14.8 dB held-out PSNR (CP: 55.1 %, 2.7 cm, 14.7 cm, 19.0 dB).
+The planes therefore train at ``vm_plane_lr_scale`` (10) x the grid lr, the lines at 1x
+(``bench/mapping.py --quick``, seed 0: x5 gave 56.7 %, 4.3 cm, 12.7 cm, 22.7 dB; x10
+63.5 %, 3.2 cm, 10.5 cm, 26.1 dB). TensoRF's density L1 (weight 2.4e-4 here, = its 8e-5
+on per-axis means) made it worse (x5 + L1: 40.6 %, 8.9 cm). ``vm_plane_lr_scale = 1``
+restores the single parameter group.
 """
 from __future__ import annotations
 
@@ -80,6 +93,13 @@ class VMField(Field):
 
     def decoder_parameters(self) -> list[nn.Parameter]:
         return [self.basis.weight, *self.decoder.parameters()]
+
+    def grid_param_groups(self) -> list[tuple[list[nn.Parameter], float]]:
+        """One group at 1x (default), or planes at ``vm_plane_lr_scale`` x and lines at 1x."""
+        scale = float(self.cfg.vm_plane_lr_scale)
+        if scale == 1.0:
+            return [(self.grid_parameters(), 1.0)]
+        return [([self.density_planes, self.app_planes], scale), ([self.density_lines, self.app_lines], 1.0)]
 
     def regularizer(self, kind: str = "tv") -> Tensor:
         """``tv``: mean squared neighbour differences on planes (both directions) and lines;

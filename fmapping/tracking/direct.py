@@ -125,10 +125,18 @@ class Pyramid:
 
     levels: list  # of (H_l, W_l, 3) float32 (I, Iu, Iv)
     cameras: list  # PinholeCamera per level
+    masks: Optional[list] = None  # per level (H_l, W_l) bool: pixels whose samples are real image (None: all)
 
 
-def build_pyramid(gray: np.ndarray, camera: PinholeCamera, levels: int, blur: float = 0.0) -> Pyramid:
-    """Pyramid of ``levels`` levels; ``blur`` > 0 smooths level 0 with a Gaussian of that sigma (pixels)."""
+def build_pyramid(gray: np.ndarray, camera: PinholeCamera, levels: int, blur: float = 0.0,
+                  valid: Optional[np.ndarray] = None) -> Pyramid:
+    """Pyramid of ``levels`` levels; ``blur`` > 0 smooths level 0 with a Gaussian of that sigma (pixels).
+
+    ``valid`` (H, W) bool marks real image content (e.g. :func:`image_valid_mask`, which
+    excludes the black fill of an undistorted image); each coarser level keeps a pixel
+    only when its whole ``pyrDown`` footprint is valid. Points warped onto invalid
+    pixels are left out of the alignment (:func:`warp_residuals`).
+    """
     if gray.shape != (camera.height, camera.width):
         raise ValueError(f"image is {gray.shape[1]}x{gray.shape[0]} but the camera is {camera.width}x{camera.height}")
     if blur > 0:
@@ -136,9 +144,21 @@ def build_pyramid(gray: np.ndarray, camera: PinholeCamera, levels: int, blur: fl
     imgs = [gray]
     for _ in range(1, levels):
         imgs.append(cv2.pyrDown(imgs[-1]))
+    masks = None
+    if valid is not None:
+        valid = np.asarray(valid, bool)
+        if valid.shape != gray.shape:
+            raise ValueError(f"valid mask is {valid.shape[1]}x{valid.shape[0]} but the image is "
+                             f"{gray.shape[1]}x{gray.shape[0]}")
+        k = cv2.getStructuringElement(cv2.MORPH_RECT, (5, 5))
+        masks = [valid]
+        for im in imgs[1:]:
+            m = cv2.erode(masks[-1].view(np.uint8), k, borderValue=1)[::2, ::2][: im.shape[0], : im.shape[1]]
+            masks.append(m > 0)
     return Pyramid(
         [with_gradients(im) for im in imgs],
         [level_camera(camera, i, (im.shape[1], im.shape[0])) for i, im in enumerate(imgs)],
+        masks,
     )
 
 
@@ -215,12 +235,15 @@ class Reference:
 
 def image_valid_mask(rgb: np.ndarray, erode: int = 4) -> Optional[np.ndarray]:
     """Pixels away from exactly-black fill (undistortion borders); None when there is no such fill."""
-    img = np.asarray(rgb)
-    black = (img.reshape(img.shape[0], img.shape[1], -1) == 0).all(-1)
-    if not black.any():
+    img = np.ascontiguousarray(rgb)
+    if img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3:
+        black = cv2.inRange(img, (0, 0, 0), (0, 0, 0))  # 255 where all channels are 0 (fast path)
+    else:
+        black = (img.reshape(img.shape[0], img.shape[1], -1) == 0).all(-1).astype(np.uint8) * 255
+    if cv2.countNonZero(black) == 0:
         return None
-    k = np.ones((2 * erode + 1, 2 * erode + 1), np.uint8)
-    return cv2.erode((~black).astype(np.uint8), k) > 0
+    k = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * erode + 1, 2 * erode + 1))
+    return cv2.erode(cv2.bitwise_not(black), k) > 0
 
 
 def make_reference(rgb: np.ndarray, depth: DepthSource, camera: PinholeCamera, c2w: np.ndarray, levels: int = 3,
@@ -292,13 +315,15 @@ def _reference(pyr: Pyramid, pts: np.ndarray, uv: np.ndarray, c2w, frame_index: 
 
 # ----------------------------------------------------------------------------- residuals and Jacobians
 def warp_residuals(level_img: np.ndarray, cam: PinholeCamera, points: np.ndarray, ref_int: np.ndarray,
-                   t_cr: np.ndarray, affine: np.ndarray, with_jacobian: bool = True, margin: float = 1.0):
+                   t_cr: np.ndarray, affine: np.ndarray, with_jacobian: bool = True, margin: float = 1.0,
+                   mask: Optional[np.ndarray] = None):
     """Photometric residuals of reference points warped into a pyramid level of the current frame.
 
     Returns ``(r, J, valid)``: residuals (M,) for the valid points, Jacobian (M, 8)
     with respect to ``(delta_rho, delta_phi, a, b)`` for ``T_cr <- se3_exp(delta) @ T_cr``,
     ``a <- a + da``, ``b <- b + db``; and the boolean mask (N,) of points that land
-    in the image (``margin`` pixels inside) in front of the camera.
+    in the image (``margin`` pixels inside) in front of the camera and, when ``mask``
+    (H_l, W_l) bool is given, on a valid pixel (nearest).
     """
     y = points @ t_cr[:3, :3].T + t_cr[:3, 3]
     z = y[:, 2]
@@ -306,6 +331,10 @@ def warp_residuals(level_img: np.ndarray, cam: PinholeCamera, points: np.ndarray
     u = cam.fx * y[:, 0] / zs + cam.cx
     v = cam.fy * y[:, 1] / zs + cam.cy
     valid = (z > 1e-6) & (u >= margin) & (u <= cam.width - 1 - margin) & (v >= margin) & (v <= cam.height - 1 - margin)
+    if mask is not None:
+        iu = np.clip(np.rint(u), 0, cam.width - 1).astype(np.int64)
+        iv = np.clip(np.rint(v), 0, cam.height - 1).astype(np.int64)
+        valid &= mask[iv, iu]
     idx = np.flatnonzero(valid)
     s = bilinear(level_img, u[idx], v[idx]).astype(np.float64)
     ea = math.exp(affine[0])
@@ -398,9 +427,10 @@ def align(ref: Reference, cur: Pyramid, t_init: np.ndarray, cfg: AlignConfig,
     h6 = None
     for lvl in reversed(range(n_levels)):
         img, cam, iref = cur.levels[lvl], cur.cameras[lvl], ref.intensities[lvl]
+        msk = cur.masks[lvl] if cur.masks is not None else None
         iters = cfg.iterations[lvl] if lvl < len(cfg.iterations) else cfg.iterations[-1]
         lam = cfg.lm_init
-        r, jac, valid = warp_residuals(img, cam, ref.points, iref, t, ab)
+        r, jac, valid = warp_residuals(img, cam, ref.points, iref, t, ab, mask=msk)
         if len(r) < cfg.min_valid:
             continue
         k = cfg.huber_k * robust_scale(r, cfg.scale_floor)
@@ -426,7 +456,7 @@ def align(ref: Reference, cur: Pyramid, t_init: np.ndarray, cfg: AlignConfig,
                     continue
                 t_new = exp_se3(step[:6]) @ t
                 ab_new = np.clip(ab + step[6:8], -np.asarray(cfg.affine_bound), np.asarray(cfg.affine_bound)) if cfg.affine else ab
-                r_new, jac_new, valid_new = warp_residuals(img, cam, ref.points, iref, t_new, ab_new)
+                r_new, jac_new, valid_new = warp_residuals(img, cam, ref.points, iref, t_new, ab_new, mask=msk)
                 if len(r_new) >= cfg.min_valid and _total_cost(r_new, k, ab_new, cfg) <= cost * (1 + 1e-9):
                     t, ab, r, jac, valid = t_new, ab_new, r_new, jac_new, valid_new
                     lam = max(lam * 0.3, 1e-7)
@@ -444,7 +474,8 @@ def align(ref: Reference, cur: Pyramid, t_init: np.ndarray, cfg: AlignConfig,
         if lvl == 0:
             w = huber_weights(r, k)
             h6 = (jac[:, :6] * w[:, None]).T @ jac[:, :6]
-    r, _, valid = warp_residuals(cur.levels[0], cur.cameras[0], ref.points, ref.intensities[0], t, ab, with_jacobian=False)
+    r, _, valid = warp_residuals(cur.levels[0], cur.cameras[0], ref.points, ref.intensities[0], t, ab, with_jacobian=False,
+                                 mask=cur.masks[0] if cur.masks is not None else None)
     n = len(ref.points)
     ok = len(r) >= cfg.min_valid and bool(np.all(np.isfinite(t)))
     rmse = float(np.sqrt(np.mean(r * r))) if len(r) else float("inf")

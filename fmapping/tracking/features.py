@@ -8,7 +8,10 @@ any. This module supplies it with standard two-view geometry (OpenCV):
 * :func:`two_view_init` recovers the relative pose of two views from the tracks
   (essential matrix, RANSAC) up to scale and triangulates the inliers;
 * :func:`triangulate` gives world points of tracks between two views with known
-  poses, rejecting low parallax and large reprojection errors.
+  poses, rejecting low parallax and large reprojection errors;
+* :func:`two_view_known_baseline` recovers the relative rotation when the baseline
+  vector is known (from a pose source), for the rotation-dominant starts where the
+  essential matrix confuses rotation with translation.
 
 Conventions: pixels (u, v) with integer centres, poses camera-to-world 4x4
 (OpenCV axes), see :mod:`fmapping.geometry`.
@@ -188,6 +191,71 @@ def two_view_init(camera: PinholeCamera, uv_a: np.ndarray, uv_b: np.ndarray, ran
     med = float(np.median(par[ok])) if ok.any() else 0.0
     valid = ok & (par >= min_parallax_deg)
     return TwoViewResult(c2w_b, inl, pts, valid, med)
+
+
+def _bearings(camera: PinholeCamera, uv: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) -> z-normalised camera rays (N, 3) (x/z, y/z, 1)."""
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    return np.stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy, np.ones(len(uv))], -1)
+
+
+def sampson_px(camera: PinholeCamera, rot_ab: np.ndarray, centre_b_in_a: np.ndarray, uv_a: np.ndarray,
+               uv_b: np.ndarray) -> np.ndarray:
+    """Signed Sampson distance (pixels, in the geometric mean focal length) of pixel pairs under the
+    relative pose ``X_b = R (X_a - c)`` (``R = rot_ab``, ``c`` = view b's centre in view a's frame).
+
+    The epipolar constraint is ``x_b^T E x_a = 0`` with ``E = R [c]_x``.
+    """
+    c = np.asarray(centre_b_in_a, np.float64)
+    cx = np.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]])
+    e = np.asarray(rot_ab, np.float64) @ cx
+    xa, xb = _bearings(camera, uv_a), _bearings(camera, uv_b)
+    exa = xa @ e.T
+    etxb = xb @ e
+    num = (xb * exa).sum(1)
+    den = np.sqrt(exa[:, 0] ** 2 + exa[:, 1] ** 2 + etxb[:, 0] ** 2 + etxb[:, 1] ** 2)
+    return num / np.maximum(den, 1e-15) * math.sqrt(camera.fx * camera.fy)
+
+
+def two_view_known_baseline(camera: PinholeCamera, uv_a: np.ndarray, uv_b: np.ndarray, centre_b_in_a: np.ndarray,
+                            inlier_px: float = 1.0, rot_init: Optional[np.ndarray] = None) -> Optional[tuple]:
+    """Relative rotation of view b when its centre ``c`` in view a's camera frame is known.
+
+    With the baseline fixed only the 3 rotation parameters are fitted (robust least
+    squares on :func:`sampson_px`), so the rotation / translation ambiguity of a short
+    baseline cannot trade one for the other. Start: ``rot_init`` or the best pure
+    rotation between the bearings (Kabsch, fine for the small parallax it is meant
+    for). Returns ``(c2w_b with view a at the identity, inlier mask)`` (inliers:
+    ``|sampson| < 2 * inlier_px``) or None with fewer than 10 pairs.
+    """
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    uv_a = np.asarray(uv_a, np.float64).reshape(-1, 2)
+    uv_b = np.asarray(uv_b, np.float64).reshape(-1, 2)
+    c = np.asarray(centre_b_in_a, np.float64).reshape(3)
+    if len(uv_a) < 10 or len(uv_a) != len(uv_b):
+        return None
+    if rot_init is None:
+        fa = _bearings(camera, uv_a)
+        fb = _bearings(camera, uv_b)
+        fa /= np.linalg.norm(fa, axis=1, keepdims=True)
+        fb /= np.linalg.norm(fb, axis=1, keepdims=True)
+        u, _, vt = np.linalg.svd(fb.T @ fa)  # R fa ~ fb
+        rot_init = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    x0 = Rotation.from_matrix(rot_init).as_rotvec()
+    inl = np.ones(len(uv_a), bool)
+    for _ in range(2):  # fit, drop outliers, refit
+        fun = lambda x, m=inl: sampson_px(camera, Rotation.from_rotvec(x).as_matrix(), c, uv_a[m], uv_b[m])  # noqa: E731
+        x0 = least_squares(fun, x0, loss="huber", f_scale=inlier_px).x
+        inl = np.abs(sampson_px(camera, Rotation.from_rotvec(x0).as_matrix(), c, uv_a, uv_b)) < 2 * inlier_px
+        if inl.sum() < 10:
+            return None
+    rot = Rotation.from_rotvec(x0).as_matrix()
+    t_ab = np.eye(4)
+    t_ab[:3, :3] = rot
+    t_ab[:3, 3] = -rot @ c
+    return np.linalg.inv(t_ab), inl
 
 
 def points_to_camera(c2w: np.ndarray, pts_world: np.ndarray) -> np.ndarray:

@@ -28,7 +28,7 @@ import numpy as np
 
 from fmapping.camera import PinholeCamera
 from fmapping.tracking.direct import (
-    AlignConfig, AlignResult, DepthSource, Reference, align, build_pyramid, inv_pose, make_reference,
+    AlignConfig, AlignResult, DepthSource, Reference, align, build_pyramid, image_valid_mask, inv_pose, make_reference,
     orthonormalize, pose_distance, reference_from_points, to_gray,
 )
 
@@ -179,7 +179,8 @@ class DirectTracker:
         if self.reference is None:
             raise RuntimeError("DirectTracker.track called before set_reference")
         t0 = time.perf_counter()
-        pyr = build_pyramid(to_gray(rgb), self.camera, self.cfg.align.levels, self.cfg.align.blur)
+        pyr = build_pyramid(to_gray(rgb), self.camera, self.cfg.align.levels, self.cfg.align.blur,
+                            image_valid_mask(rgb))
         pred = self.predict() if c2w_guess is None else np.asarray(c2w_guess, np.float64)
         ref = self.reference
         res, c2w = self._align_to(ref, pyr, pred, self._last_affine)

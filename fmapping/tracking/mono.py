@@ -35,7 +35,9 @@ import numpy as np
 from fmapping.camera import PinholeCamera
 from fmapping.tracking.ba import bundle_adjust
 from fmapping.tracking.direct import inv_pose, orthonormalize, pose_distance, select_pixels, to_gray
-from fmapping.tracking.features import KltConfig, detect_corners, klt_track, to_u8, triangulate, two_view_init
+from fmapping.tracking.features import (
+    KltConfig, detect_corners, klt_track, to_u8, triangulate, two_view_init, two_view_known_baseline,
+)
 from fmapping.tracking.frontend import DirectTracker, TrackerConfig, TrackResult
 
 
@@ -65,6 +67,14 @@ class MonoConfig:
     #                        with a constant-depth plane at the last median depth (reported as "reinit")
     pnp_min_points: int = 30
     pnp_inlier_px: float = 2.0
+
+
+def _parallax_deg(c2w_a: np.ndarray, c2w_b: np.ndarray, world: np.ndarray) -> np.ndarray:
+    """Angle (degrees) between the rays from the two camera centres to each world point (N, 3)."""
+    ra = world - c2w_a[:3, 3]
+    rb = world - c2w_b[:3, 3]
+    cos = (ra * rb).sum(1) / np.maximum(np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1), 1e-12)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
 class _Tracks:
@@ -122,11 +132,20 @@ class MonoFrontend:
 
     # ================================================================== bootstrap
     def bootstrap(self, index: int, rgb: np.ndarray, c2w0: np.ndarray,
-                  anchor_baseline: Optional[Callable[[int], Optional[float]]] = None) -> Optional[dict]:
+                  anchor_baseline: Optional[Callable[[int], Optional[float]]] = None,
+                  anchor_position: Optional[Callable[[int], Optional[np.ndarray]]] = None) -> Optional[dict]:
         """Feed frames from the start. Returns {index: c2w} of all frames so far once initialised, else None.
 
         ``anchor_baseline(index)`` gives the metric distance between the camera
         centres of the first frame and frame ``index`` (from a pose source), or None.
+        ``anchor_position(index)`` gives the camera centre (3,) of frame ``index`` in the
+        world frame of ``c2w0`` (the "first two poses known" convention), or None; it
+        takes precedence: the baseline *vector* is then known and only the rotation is
+        fitted to the tracks (:func:`~fmapping.tracking.features.two_view_known_baseline`).
+        The essential matrix cannot tell a small translation from a rotation when the
+        motion is mostly rotation (centimetres of baseline at metres of depth): its
+        translation direction, hence the triangulated depth and the scale, is then
+        wrong even with the right baseline length.
         """
         gray = to_u8(rgb)
         c = self.cfg
@@ -147,24 +166,43 @@ class MonoFrontend:
         flow = np.median(np.linalg.norm(tr.uv - tr.uv_first, axis=1))
         if flow < c.init_min_flow_px * self.camera.width / 320.0:
             return None
-        tv = two_view_init(self.camera, tr.uv_first, tr.uv, c.ransac_px, c.tri_min_parallax_deg)
-        if tv is None or tv.valid.sum() < c.init_min_points or tv.median_parallax_deg < c.init_min_parallax_deg:
-            return None
         need_px = c.init_min_parallax_px if len(tr) >= 2 * c.init_min_points else c.init_fallback_parallax_px
-        if np.radians(tv.median_parallax_deg) * self.camera.fx < need_px:
-            return None
-        base = anchor_baseline(index) if anchor_baseline is not None else None
-        if base is not None and base > 1e-4:
-            s, how = float(base), "anchor"  # recoverPose's translation has unit norm
+        pos = anchor_position(index) if anchor_position is not None else None
+        if pos is not None:
+            c_a = self._c2w0[:3, :3].T @ (np.asarray(pos, np.float64).reshape(3) - self._c2w0[:3, 3])
+            if np.linalg.norm(c_a) < 1e-4:
+                return None
+            kb = two_view_known_baseline(self.camera, tr.uv_first, tr.uv, c_a, c.ransac_px)
+            if kb is None:
+                return None
+            c2w_k = orthonormalize(self._c2w0 @ kb[0])
+            world, valid = triangulate(self.camera, self._c2w0, c2w_k, tr.uv_first, tr.uv,
+                                       c.tri_min_parallax_deg, c.tri_max_reproj_px)
+            valid &= kb[1]
+            median_par = float(np.median(_parallax_deg(self._c2w0, c2w_k, world[valid]))) if valid.any() else 0.0
+            if valid.sum() < c.init_min_points or median_par < c.init_min_parallax_deg \
+                    or np.radians(median_par) * self.camera.fx < need_px:
+                return None
+            s, how = float(np.linalg.norm(c_a)), "anchor_position"
         else:
-            s, how = float(c.unit_depth / np.median(tv.points[tv.valid, 2])), "unit_depth"
-        c2w_k = tv.c2w_b.copy()
-        c2w_k[:3, 3] *= s
-        c2w_k = orthonormalize(self._c2w0 @ c2w_k)
-        world = (tv.points * s) @ self._c2w0[:3, :3].T + self._c2w0[:3, 3]
+            tv = two_view_init(self.camera, tr.uv_first, tr.uv, c.ransac_px, c.tri_min_parallax_deg)
+            if tv is None or tv.valid.sum() < c.init_min_points or tv.median_parallax_deg < c.init_min_parallax_deg:
+                return None
+            if np.radians(tv.median_parallax_deg) * self.camera.fx < need_px:
+                return None
+            base = anchor_baseline(index) if anchor_baseline is not None else None
+            if base is not None and base > 1e-4:
+                s, how = float(base), "anchor"  # recoverPose's translation has unit norm
+            else:
+                s, how = float(c.unit_depth / np.median(tv.points[tv.valid, 2])), "unit_depth"
+            c2w_k = tv.c2w_b.copy()
+            c2w_k[:3, 3] *= s
+            c2w_k = orthonormalize(self._c2w0 @ c2w_k)
+            world = (tv.points * s) @ self._c2w0[:3, :3].T + self._c2w0[:3, 3]
+            valid, median_par = tv.valid, tv.median_parallax_deg
         i0 = self._buf[0][0]
         # landmarks and their two observations
-        sel = np.flatnonzero(tv.valid)
+        sel = np.flatnonzero(valid)
         self._kf_pose = {i0: self._c2w0.copy(), index: c2w_k}
         for j in sel:
             lid = len(self._lm)
@@ -186,22 +224,23 @@ class MonoFrontend:
         two_view_vs_photo = pose_distance(self._kf_pose[index], r.c2w)[1]
         poses[index] = self._kf_pose[index]
         # multi-view bundle adjustment of the bootstrap (frame 0 fixed), then the anchor scale again
-        rms = self._bootstrap_ba(poses, index, s if how == "anchor" else None)
+        rms = self._bootstrap_ba(poses, index, s if how == "anchor" else None, fix_last=how == "anchor_position")
         for fi in poses:
             self._rel[fi] = (i0, inv_pose(self._c2w0) @ poses[fi])
         self._rel[index] = (index, np.eye(4))
         poses[index] = self._kf_pose[index]
         self.tracker.reset_motion([poses[self._buf[-2][0]], poses[index]])
         self.init_info = {"frame": int(index), "frames": len(self._buf), "points": int(len(sel)),
-                          "median_parallax_deg": tv.median_parallax_deg, "scale": s, "scale_from": how,
+                          "median_parallax_deg": median_par, "scale": s, "scale_from": how,
                           "two_view_vs_photometric_deg": two_view_vs_photo, "ba_rms_px": rms}
         self._set_reference(index, rgb, gray)
         self.initialized = True
         self._buf = []
         return poses
 
-    def _bootstrap_ba(self, poses: dict, k_index: int, baseline: Optional[float]) -> Optional[float]:
-        """BA over up to 6 bootstrap frames (frame 0 fixed, scale re-anchored); updates poses and landmarks."""
+    def _bootstrap_ba(self, poses: dict, k_index: int, baseline: Optional[float], fix_last: bool = False) -> Optional[float]:
+        """BA over up to 6 bootstrap frames (frame 0 fixed, and frame ``k_index`` with ``fix_last``;
+        the scale re-anchored to ``baseline`` when given); updates poses and landmarks."""
         c = self.cfg
         tr = self._tracks
         ids = [f for f, _ in self._buf]
@@ -220,7 +259,8 @@ class MonoFrontend:
                     obs_uv.append(uv)
         if len(lids) < 10:
             return None
-        res = bundle_adjust(self.camera, [poses[f] for f in sel], [0], np.stack([self._lm[l] for l in lids]),
+        fixed = [0, len(sel) - 1] if fix_last else [0]  # sel ends with k_index (the newest frame)
+        res = bundle_adjust(self.camera, [poses[f] for f in sel], fixed, np.stack([self._lm[l] for l in lids]),
                             np.array(obs_kf), np.array(obs_pt), np.array(obs_uv), c.ba_huber_px, 30)
         new = dict(zip(sel, res.poses))
         pts = res.points

@@ -25,7 +25,7 @@ from typing import Optional
 import numpy as np
 
 from fmapping import protocol as P
-from services.common import Peers, Service, add_common_args
+from services.common import Peers, Service, add_common_args, names, service_parser
 
 
 def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -46,18 +46,14 @@ def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     return add_common_args(p)
 
 
-def _names(text: Optional[str]) -> list[str]:
-    return [x.strip() for x in (text or "").split(",") if x.strip()]
-
-
 class Player:
     """The playback loop; ``dataset`` is any :class:`fmapping.datasets.base.Dataset`."""
 
     def __init__(self, svc: Service, dataset, args):
         self.svc, self.ds, self.args = svc, dataset, args
         self.peers = Peers()
-        self.ack_from = _names(args.ack_from)
-        self.wait_for = _names(args.wait_for) if args.wait_for is not None else list(self.ack_from)
+        self.ack_from = names(args.ack_from)
+        self.wait_for = names(args.wait_for) if args.wait_for is not None else list(self.ack_from)
         self.paused = threading.Event()
         if args.paused:
             self.paused.set()
@@ -228,16 +224,12 @@ class Player:
 def main(argv=None, session=None, keys=None, dataset=None) -> int:
     from services.common import setup_logging
 
-    args = add_args(argparse.ArgumentParser(prog="python -m services.io play", description=__doc__,
-                                            formatter_class=argparse.RawDescriptionHelpFormatter)).parse_args(argv)
+    args = add_args(service_parser("services.io play", __doc__)).parse_args(argv)
     setup_logging(args.log_level, "play")
     if dataset is None:
         from fmapping.datasets import open_dataset
 
         dataset = open_dataset(args.data, camera=args.camera, max_frames=args.max_frames)
-    svc = Service("play", args, session=session, keys=keys, install_signals=session is None)
-    try:
+    with Service("play", args, session=session, keys=keys) as svc:
         svc.start_heartbeat()
         return Player(svc, dataset, args).run()
-    finally:
-        svc.close("done")

@@ -11,7 +11,6 @@ for every source seen, ``points.ply`` (the latest map points) and ``record.json`
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 from typing import Optional
 
@@ -20,7 +19,8 @@ import numpy as np
 from fmapping import protocol as P
 from fmapping.ply import write_ply
 from fmapping.trajectory import write_tum_trajectory  # imports torch: at start-up, not at the end
-from services.common import Peers, Service, add_common_args, setup_logging, write_json_atomic
+from services.common import (Peers, Service, add_common_args, names, serve_until_end, service_parser, setup_logging,
+                             stop_kind, write_json_atomic)
 
 
 def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -96,60 +96,33 @@ def handle_message(svc: Service, rec: Recorder, peers: Peers, channel: str, key:
         if msg is not None:
             peers.update(msg)
     elif channel == "control":
-        msg = svc.decode(data, P.Control, key)
-        if msg is not None and svc.addressed(msg):
+        msg = svc.control(data, key)
+        if msg is not None:
             if msg.command == "save":
                 rec.write()
-            elif msg.command == "stop":
-                return "end" if msg.args.get("reason") == "end" and wait_done else "stop"
+            return stop_kind(msg, wait_done)
     return None
 
 
 def run(svc: Service, args) -> int:
     rec = Recorder(args.out, args.source, args.max_poses)
     peers = Peers()
-    wait_done = [x.strip() for x in (args.wait_done or "").split(",") if x.strip()]
+    wait_done = names(args.wait_done)
     svc.subscribe(svc.keys.poses(), "poses")
     svc.subscribe(svc.keys.points, "points")
     svc.subscribe(svc.keys.status(), "status")
     svc.subscribe(svc.keys.control, "control")
-    svc.status.update(state="running")
-    svc.publish_status()
-    svc.start_heartbeat()
-    end_deadline: Optional[float] = None
-
-    while not svc.shutdown.requested:
-        item = svc.inbox.get(timeout=0.1)
-        if item is not None:
-            channel, (key, data) = item
-            what = handle_message(svc, rec, peers, channel, key, data, wait_done)
-            if what == "stop":
-                break
-            if what == "end" and end_deadline is None:
-                end_deadline = time.monotonic() + args.final_timeout
-                svc.status.update(state="finishing")
-        if end_deadline is not None:
-            done = all((peers.get(n) is not None and peers.get(n).state in ("done", "error")) for n in wait_done)
-            if done or time.monotonic() > end_deadline:
-                if not done:
-                    svc.log.warning("%s not done after %.0f s: writing what I have", wait_done, args.final_timeout)
-                break
-    # what is already queued (e.g. the final points published just before 'done') still counts
-    while (item := svc.inbox.get(timeout=0)) is not None:
-        channel, (key, data) = item
-        handle_message(svc, rec, peers, channel, key, data, wait_done)
+    svc.start()
+    serve_until_end(svc, peers, lambda ch, key, data: handle_message(svc, rec, peers, ch, key, data, wait_done),
+                    wait_done, args.final_timeout)
     summary = rec.write()
     svc.log.info("wrote %s", ", ".join(summary["files"]) or "nothing (no poses, no points)")
     return 0
 
 
 def main(argv=None, session=None, keys=None) -> int:
-    args = add_args(argparse.ArgumentParser(prog="python -m services.io record", description=__doc__,
-                                            formatter_class=argparse.RawDescriptionHelpFormatter)).parse_args(argv)
+    args = add_args(service_parser("services.io record", __doc__)).parse_args(argv)
     setup_logging(args.log_level, "record")
-    svc = Service("record", args, capacities={"control": 64, "status": 256, "poses": 100_000, "points": 2},
-                  session=session, keys=keys, install_signals=session is None)
-    try:
+    with Service("record", args, capacities={"control": 64, "status": 256, "poses": 100_000, "points": 2},
+                 session=session, keys=keys) as svc:
         return run(svc, args)
-    finally:
-        svc.close("done")

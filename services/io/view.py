@@ -21,7 +21,8 @@ from typing import Optional
 import numpy as np
 
 from fmapping import protocol as P
-from services.common import Peers, Service, add_common_args, setup_logging
+from services.common import (Peers, Service, add_common_args, names, serve_until_end, service_parser, setup_logging,
+                             stop_kind)
 
 SOURCE_COLORS = {"tracker": (230, 80, 40), "gt": (40, 200, 80), "external": (60, 120, 240)}
 
@@ -172,41 +173,22 @@ def handle_message(svc: Service, view: Viewer, peers: Peers, channel: str, key: 
             if msg.service != svc.name:
                 view.on_status(msg)
     elif channel == "control":
-        msg = svc.decode(data, P.Control, key)
-        if msg is not None and svc.addressed(msg) and msg.command == "stop":
-            return "end" if msg.args.get("reason") == "end" and wait_done else "stop"
+        msg = svc.control(data, key)
+        if msg is not None:
+            return stop_kind(msg, wait_done)
     return None
 
 
 def run(svc: Service, args, rec) -> int:
     view = Viewer(rec, args.primary, args.image_every, args.depth_every, args.jpeg_quality)
     peers = Peers()
-    wait_done = [x.strip() for x in (args.wait_done or "").split(",") if x.strip()]
+    wait_done = names(args.wait_done)
     for key, ch in ((svc.keys.frames, "frames"), (svc.keys.poses(), "poses"), (svc.keys.points, "points"),
                     (svc.keys.field, "field"), (svc.keys.status(), "status"), (svc.keys.control, "control")):
         svc.subscribe(key, ch)
-    svc.status.update(state="running")
-    svc.publish_status()
-    svc.start_heartbeat()
-    end_deadline: Optional[float] = None
-
-    while not svc.shutdown.requested:
-        item = svc.inbox.get(timeout=0.1)
-        if item is not None:
-            channel, (key, data) = item
-            what = handle_message(svc, view, peers, channel, key, data, wait_done)
-            if what == "stop":
-                break
-            if what == "end" and end_deadline is None:
-                end_deadline = time.monotonic() + args.final_timeout
-                svc.status.update(state="finishing")
-        if end_deadline is not None:
-            done = all(peers.get(n) is not None and peers.get(n).state in ("done", "error") for n in wait_done)
-            if done or time.monotonic() > end_deadline:
-                break
-    while (item := svc.inbox.get(timeout=0)) is not None:
-        channel, (key, data) = item
-        handle_message(svc, view, peers, channel, key, data, wait_done)
+    svc.start()
+    serve_until_end(svc, peers, lambda ch, key, data: handle_message(svc, view, peers, ch, key, data, wait_done),
+                    wait_done, args.final_timeout)
     view.finish()
     if not args.save and not args.exit_at_end and not svc.shutdown.requested:
         svc.log.info("sequence ended; still serving the viewer (Ctrl-C to quit)")
@@ -216,13 +198,12 @@ def run(svc: Service, args, rec) -> int:
 
 
 def main(argv=None, session=None, keys=None) -> int:
-    args = add_args(argparse.ArgumentParser(prog="python -m services.io view", description=__doc__,
-                                            formatter_class=argparse.RawDescriptionHelpFormatter)).parse_args(argv)
+    args = add_args(service_parser("services.io view", __doc__)).parse_args(argv)
     setup_logging(args.log_level, "view")
     rec = open_recording(args)
     svc = Service("view", args, capacities={"control": 64, "status": 256, "poses": 10_000, "field": 2,
                                             "points": 2, "frames": 8},
-                  session=session, keys=keys, install_signals=session is None)
+                  session=session, keys=keys)
     try:
         return run(svc, args, rec)
     finally:

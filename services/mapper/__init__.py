@@ -39,6 +39,7 @@ from typing import Any, Optional
 import numpy as np
 
 from fmapping import protocol as P
+from services.common import ServiceCore, rigid_pose
 
 log = logging.getLogger("fmapping.mapper")
 
@@ -81,44 +82,25 @@ class MapperServiceOptions:
         return self
 
 
-class _Counters:
-    """Minimal counters when the shell does not pass its own (same interface as services.common.Counters)."""
-
-    def __init__(self) -> None:
-        self.c: dict[str, float] = {}
-
-    def inc(self, name: str, n: float = 1) -> None:
-        self.c[name] = self.c.get(name, 0) + n
-
-    def set(self, name: str, value: float) -> None:
-        self.c[name] = value
-
-    def get(self, name: str, default: float = 0) -> float:
-        return self.c.get(name, default)
-
-    def snapshot(self) -> dict:
-        return dict(self.c)
-
-
 Output = tuple[str, Any]  # (channel, message): channel in field | points | poses
 
 
-class MapperCore:
+class MapperCore(ServiceCore):
     """See the module docstring. Single-threaded: call it from one worker thread."""
+
+    CHANNELS = {"frames": P.Frame, "poses": P.Pose, "control": P.Control}
 
     def __init__(self, cfg, opts: Optional[MapperServiceOptions] = None, counters=None, device=None,
                  on_bad_input=None, clock=time.monotonic):
         from fmapping.mapper import MapperConfig
 
+        super().__init__(counters, on_bad_input)
         self.clock = clock  # for the pose timeout (injectable in tests)
         self._arrived: dict[int, float] = {}
-        self.on_bad_input = on_bad_input  # called with a one-line description of each rejected input
         self.cfg = cfg if cfg is not None else MapperConfig()
         self.opts = (opts or MapperServiceOptions()).validate()
-        self.counters = counters if counters is not None else _Counters()
         self.device = device
         self.mapper = None
-        self.camera_dict: Optional[dict] = None
         self.frames: "OrderedDict[int, P.Frame]" = OrderedDict()
         self.poses: dict[int, P.Pose] = {}
         self.anchors: dict[int, P.Pose] = {}
@@ -132,7 +114,6 @@ class MapperCore:
         self.interrupted = False  # set by the shell when a signal aborted an update half-way
         self.paused = False
         self.finished = False
-        self.last_error = ""
         self._last_points = time.monotonic()  # the first points snapshot comes one interval after start
         self._points_dirty = False
         self.resumed_from: Optional[str] = None
@@ -155,23 +136,6 @@ class MapperCore:
             return 0.0
         return max(0.0, self._newest_ts - self._acked_ts)
 
-    def handle(self, channel: str, data: bytes, key: str = "") -> list[Output]:
-        """Decode and apply one payload from ``channel`` (frames | poses | control). A payload that
-        fails to decode is counted (``decode_errors``), reported to ``on_bad_input`` and ignored."""
-        expect = {"frames": P.Frame, "poses": P.Pose, "control": P.Control}.get(channel)
-        if expect is None:
-            raise ValueError(f"MapperCore.handle: unknown channel {channel!r}")
-        try:
-            msg = P.decode(data, expect)
-        except P.ProtocolError as e:
-            self.counters.inc("decode_errors")
-            self.counters.inc("bad_input")
-            self.last_error = f"{key or channel}: {e}"
-            if self.on_bad_input is not None:
-                self.on_bad_input(self.last_error)
-            return []
-        return self.apply(msg)
-
     def apply(self, msg: P.Message) -> list[Output]:
         if isinstance(msg, P.Frame):
             return self.on_frame(msg)
@@ -182,15 +146,10 @@ class MapperCore:
         raise ValueError(f"MapperCore: unexpected message {type(msg).__name__}")
 
     def on_frame(self, f: P.Frame) -> list[Output]:
-        if self.camera_dict is None:  # the first frame fixes the camera: only one the mapper can use
-            why = _unusable_camera(f.camera)
-            if why:
-                self._reject(f"frame {f.seq}: {why}")
-                return []
-            self.camera_dict = dict(f.camera)
-        elif f.camera != self.camera_dict:
-            self._reject(f"frame {f.seq}: camera {f.camera} differs from the first frame's {self.camera_dict}")
+        cam = self.frame_camera(f, undistorted=True)  # the first frame fixes it: only one the mapper can use
+        if cam is None:
             return []
+        self.camera_dict = cam
         if f.seq <= self.last_seq or f.seq in self.frames:
             self.counters.inc("stale_frames")
             return []
@@ -240,13 +199,6 @@ class MapperCore:
         elif c.command == "stop":
             return self.finish()
         return []
-
-    def _reject(self, why: str) -> None:
-        self.counters.inc("rejected_frames")
-        self.counters.inc("bad_input")
-        self.last_error = why
-        if self.on_bad_input is not None:
-            self.on_bad_input(why)
 
     # ------------------------------------------------------------ mapping
     def _ensure_mapper(self) -> None:
@@ -301,7 +253,7 @@ class MapperCore:
             stats = self.mapper.add_frame(np.array(f.rgb), None if pose is None else np.array(pose.c2w),
                                           timestamp=f.timestamp, depth=None if f.depth is None else np.array(f.depth))
         except ValueError as e:  # the library refused this frame: count it, keep going
-            self._reject(f"frame {f.seq}: {e}")
+            self.bad_input(f"frame {f.seq}: {e}", "rejected_frames")
             self.last_seq = max(self.last_seq, f.seq)
             return []
         self.seq_of_fid.append(f.seq)
@@ -396,16 +348,18 @@ class MapperCore:
             return None
         if bump:
             self.version += 1
+        from fmapping.mapper import plain_tree
+
         arrays = {k: np.ascontiguousarray(v) for k, v in m.field.snapshot().items()}
         cfg = self.cfg
-        config = {"field": _plain(dataclasses.asdict(cfg.field)), "near": cfg.near, "far": cfg.far,
+        config = {"field": plain_tree(dataclasses.asdict(cfg.field)), "near": cfg.near, "far": cfg.far,
                   "n_coarse": cfg.n_coarse, "n_fine": cfg.n_fine, "camera": self.camera_dict}
         last_fid = len(self.seq_of_fid) - 1
         poses = m.frame_poses() if last_fid >= 0 else {}
         snap = P.FieldSnapshot(version=self.version, kind=cfg.field.kind, config=config,
                                aabb=m.aabb.detach().cpu().numpy().astype(np.float64), arrays=arrays,
                                frame_seq=self.seq_of_fid[-1] if self.seq_of_fid else -1, timestamp=time.time(),
-                               frame_c2w=_rigid(poses[last_fid]) if last_fid in poses else None)
+                               frame_c2w=rigid_pose(poses[last_fid]) if last_fid in poses else None)
         data = P.encode(snap)
         self.latest_field, self.latest_field_bytes = snap, data
         self.counters.set("field_version", self.version)
@@ -420,7 +374,7 @@ class MapperCore:
         for fid in m.window_ids():
             if 0 <= fid < len(self.seq_of_fid) and fid in poses:
                 out.append(P.Pose(seq=self.seq_of_fid[fid], timestamp=float(stamps.get(fid, 0.0)),
-                                  c2w=_rigid(poses[fid]), source="mapper"))
+                                  c2w=rigid_pose(poses[fid]), source="mapper"))
         return out
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray, list[int]]:
@@ -616,41 +570,6 @@ def _bounded(pts: np.ndarray, cols: np.ndarray, max_points: int, seed: int) -> t
         idx = np.sort(np.random.default_rng(seed).choice(len(pts), limit, replace=False))
         pts, cols = pts[idx], cols[idx]
     return np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(cols.reshape(-1, 3), np.uint8)
-
-
-def _unusable_camera(cam: dict) -> str:
-    """Why :class:`fmapping.mapper.Mapper` cannot map frames of this camera ('' when it can)."""
-    from fmapping.camera import PinholeCamera
-
-    if cam.get("dist"):
-        return (f"camera has distortion coefficients {cam['dist']}; the mapper needs undistorted frames "
-                "(the player undistorts)")
-    try:
-        PinholeCamera.from_dict(cam)
-    except (TypeError, ValueError, KeyError) as e:
-        return f"unusable camera {cam}: {e}"
-    return ""
-
-
-def _rigid(m: np.ndarray) -> np.ndarray:
-    """Re-orthonormalise a float pose (snapshots must pass the protocol's rotation check)."""
-    m = np.array(m, np.float64)
-    u, _, vt = np.linalg.svd(m[:3, :3])
-    r = u @ vt
-    if np.linalg.det(r) < 0:
-        u[:, -1] *= -1
-        r = u @ vt
-    m[:3, :3] = r
-    m[3] = [0, 0, 0, 1]
-    return m
-
-
-def _plain(x):
-    if isinstance(x, dict):
-        return {k: _plain(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
-    return x
 
 
 def _json_default(o):

@@ -13,17 +13,15 @@ current map (and a checkpoint) before exiting.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 
-from fmapping import protocol as P
-from services.common import Service, ServiceInterrupted, add_common_args, setup_logging
+from services.common import (Service, ServiceInterrupted, add_common_args, run_main, service_parser, set_torch_threads,
+                             setup_logging)
 from services.mapper import POSE_SOURCES, MapperCore, MapperServiceOptions, load_mapper_config
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m services.mapper", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = service_parser("services.mapper", __doc__)
     p.add_argument("--poses", default="gt", choices=POSE_SOURCES, help="pose source: key poses/<source>")
     p.add_argument("--config", default=None, help="YAML overrides of the mapper config (fmapping.mapper.MapperConfig)")
     p.add_argument("--field", default=None, choices=["cp", "vm", "mlp", "grid"])
@@ -53,10 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None, session=None, keys=None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.log_level, "mapper")
-    import torch
-
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
+    set_torch_threads(args.threads)
     overrides = {"field": {"kind": args.field}} if args.field else None
     cfg = load_mapper_config(args.config, overrides)
     if args.device:
@@ -69,20 +64,13 @@ def main(argv=None, session=None, keys=None) -> int:
         mesh_resolution=args.mesh_resolution,
         anchor_source=args.anchor, anchor_frames=args.anchor_frames, pose_timeout=args.pose_timeout,
     ).validate()
-    svc = Service("mapper", args, capacities={"control": 64, "poses": 8192, "frames": 32},
-                  session=session, keys=keys, install_signals=session is None)
-    try:
+    with Service("mapper", args, capacities={"control": 64, "poses": 8192, "frames": 32}, session=session,
+                 keys=keys) as svc:
         return serve(svc, cfg, opts, args)
-    finally:
-        svc.close("done")
 
 
 def serve(svc: Service, cfg, opts: MapperServiceOptions, args) -> int:
-    def bad(text: str) -> None:
-        svc.status.error(text)
-        svc.bad_input("%s", text)
-
-    core = MapperCore(cfg, opts, counters=svc.counters, on_bad_input=bad)
+    core = MapperCore(cfg, opts, counters=svc.counters, on_bad_input=svc.report_bad_input)
     if opts.resume and core.load_checkpoint():
         svc.log.info("resumed from %s at frame %d (field version %d)", core.resumed_from, core.ack, core.version)
     keys = svc.keys
@@ -100,14 +88,11 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args) -> int:
             svc.publish(key, msg)
 
     def report(state=None) -> None:
-        svc.status.update(state=state, frame_seq=core.ack, lag=core.lag)
-        if core.last_error and core.last_error != svc.status.last_error:
-            svc.status.error(core.last_error)
+        svc.report_core(core, state, lag=core.lag)
         svc.counters.set("queued_frames", svc.inbox.size("frames"))
 
     report("running")
-    svc.publish_status()
-    svc.start_heartbeat()
+    svc.start()
     if core.latest_field is not None:
         publish([("field", core.latest_field)])
     interrupted = False
@@ -118,8 +103,8 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args) -> int:
             if item is not None:
                 channel, (key, data) = item
                 if channel == "control":
-                    ctl = svc.decode(data, P.Control, key)
-                    if ctl is None or not svc.addressed(ctl):
+                    ctl = svc.control(data, key)
+                    if ctl is None:
                         continue
                     if ctl.command == "stop":
                         report("finishing")
@@ -164,11 +149,4 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args) -> int:
 
 
 if __name__ == "__main__":
-    from services.common import exit_process
-
-    try:
-        code = main()
-    except (FileNotFoundError, ValueError) as e:
-        print(f"services.mapper: error: {e}", file=sys.stderr)
-        code = 2
-    exit_process(code)  # outputs are written: skip the slow interpreter teardown
+    run_main(main, "services.mapper")

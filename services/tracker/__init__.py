@@ -34,6 +34,7 @@ from typing import Any, Optional
 import numpy as np
 
 from fmapping import protocol as P
+from services.common import ServiceCore, rigid_pose, usable_camera
 
 log = logging.getLogger("fmapping.tracker")
 
@@ -46,23 +47,6 @@ class TrackerServiceOptions:
     use_depth: bool = False  # reference depth from the sensor when frames carry it (else rendered from the map)
     min_acc: float = 0.5  # rendered opacity below which a pixel has no depth
     render_chunk: int = 4096
-
-
-class _Counters:
-    def __init__(self) -> None:
-        self.c: dict[str, float] = {}
-
-    def inc(self, name: str, n: float = 1) -> None:
-        self.c[name] = self.c.get(name, 0) + n
-
-    def set(self, name: str, value: float) -> None:
-        self.c[name] = value
-
-    def get(self, name: str, default: float = 0) -> float:
-        return self.c.get(name, default)
-
-    def snapshot(self) -> dict:
-        return dict(self.c)
 
 
 def render_depth(field, camera, c2w: np.ndarray, uv: np.ndarray, near: float, far: float, n_coarse: int,
@@ -99,17 +83,17 @@ def render_depth(field, camera, c2w: np.ndarray, uv: np.ndarray, near: float, fa
 Output = tuple[str, Any]
 
 
-class TrackerCore:
+class TrackerCore(ServiceCore):
     """See the module docstring. Single-threaded."""
+
+    CHANNELS = {"frames": P.Frame, "field": P.FieldSnapshot, "poses": P.Pose, "control": P.Control}
 
     def __init__(self, cfg=None, opts: Optional[TrackerServiceOptions] = None, counters=None, on_bad_input=None):
         from fmapping.tracking.frontend import TrackerConfig
 
+        super().__init__(counters, on_bad_input)
         self.cfg = cfg if cfg is not None else TrackerConfig()
         self.opts = opts or TrackerServiceOptions()
-        self.counters = counters if counters is not None else _Counters()
-        self.on_bad_input = on_bad_input
-        self.camera_dict: Optional[dict] = None
         self.camera = None
         self.tracker = None
         self.field = None
@@ -124,7 +108,6 @@ class TrackerCore:
         self.last_seq = -1
         self.ref_seq = -1
         self._ref_target: Optional[int] = None  # frame to make the next reference at
-        self.last_error = ""
         self.last_track: dict = {}
 
     @property
@@ -132,17 +115,6 @@ class TrackerCore:
         return self.last_seq
 
     # ------------------------------------------------------------ inputs
-    def handle(self, channel: str, data: bytes, key: str = "") -> list[Output]:
-        expect = {"frames": P.Frame, "field": P.FieldSnapshot, "poses": P.Pose, "control": P.Control}.get(channel)
-        if expect is None:
-            raise ValueError(f"TrackerCore.handle: unknown channel {channel!r}")
-        try:
-            msg = P.decode(data, expect)
-        except P.ProtocolError as e:
-            self._bad(f"{key or channel}: {e}", "decode_errors")
-            return []
-        return self.apply(msg)
-
     def apply(self, msg) -> list[Output]:
         if isinstance(msg, P.Frame):
             return self.on_frame(msg)
@@ -156,24 +128,17 @@ class TrackerCore:
             return []
         raise ValueError(f"TrackerCore: unexpected message {type(msg).__name__}")
 
-    def _bad(self, why: str, counter: str = "rejected") -> None:
-        self.counters.inc(counter)
-        self.counters.inc("bad_input")
-        self.last_error = why
-        if self.on_bad_input is not None:
-            self.on_bad_input(why)
-
     def on_frame(self, f: P.Frame) -> list[Output]:
+        cam = self.frame_camera(f)
+        if cam is None:
+            return []
         if self.camera_dict is None:
             try:
-                self._set_camera(_check_camera(f.camera))
+                self._set_camera(cam)
             except (TypeError, ValueError, KeyError) as e:
                 self.camera_dict = self.camera = self.tracker = None
-                self._bad(f"frame {f.seq}: unusable camera {f.camera}: {e}", "rejected_frames")
+                self.bad_input(f"frame {f.seq}: unusable camera {f.camera}: {e}", "rejected_frames")
                 return []
-        elif f.camera != self.camera_dict:
-            self._bad(f"frame {f.seq}: camera {f.camera} differs from {self.camera_dict}", "rejected_frames")
-            return []
         if f.seq <= self.last_seq or f.seq in self.waiting:
             self.counters.inc("stale_frames")
             return []
@@ -193,7 +158,7 @@ class TrackerCore:
         try:  # everything is checked and built before any state changes
             field, render_cfg, cam = self._from_snapshot(s)
         except (TypeError, ValueError, KeyError, RuntimeError, OverflowError) as e:
-            self._bad(f"field snapshot v{s.version}: {type(e).__name__}: {e}", "rejected_snapshots")
+            self.bad_input(f"field snapshot v{s.version}: {type(e).__name__}: {e}", "rejected_snapshots")
             return []
         if self.camera_dict is None and cam is not None:
             self._set_camera(cam)
@@ -244,7 +209,7 @@ class TrackerCore:
             rc[k] = int(v)
         cam = s.config.get("camera")
         if cam is not None:
-            cam = _check_camera(cam)
+            cam = usable_camera(cam)
             if self.camera_dict is not None and cam != self.camera_dict:
                 raise ValueError(f"config.camera {cam} is not the frames' camera {self.camera_dict}")
         field = field_from_snapshot(fcfg, {k: np.array(v) for k, v in s.arrays.items()})
@@ -318,32 +283,25 @@ class TrackerCore:
         t0 = time.perf_counter()
         if f is None:  # never saw this frame (restart / late join): a view rendered from the map
             rgb, depth = self._render_view(c2w)
-            try:
-                self.tracker.set_reference(rgb, depth, c2w, frame_index=seq)
-            except ValueError as e:
-                self.counters.inc("reference_failures")
-                self.last_error = f"rendered reference at frame {seq}: {e}"
-                return False
-            self.ref_seq = seq
-            self.counters.inc("references_rendered")
-            self.counters.set("reference_ms", round((time.perf_counter() - t0) * 1e3, 1))
-            return True
-        if self.opts.use_depth and f.depth is not None:
-            depth: Any = np.asarray(f.depth)
+            what, counter = "rendered reference", "references_rendered"
         else:
-            rc = self.render_cfg
+            rgb, what, counter = np.asarray(f.rgb), "reference", "references"
+            if self.opts.use_depth and f.depth is not None:
+                depth = np.asarray(f.depth)
+            else:
+                rc = self.render_cfg
 
-            def depth(uv: np.ndarray) -> np.ndarray:
-                return render_depth(self.field, self.camera, c2w, uv, rc["near"], rc["far"], int(rc["n_coarse"]),
-                                    int(rc["n_fine"]), self.opts.min_acc, self.opts.render_chunk)
+                def depth(uv: np.ndarray) -> np.ndarray:
+                    return render_depth(self.field, self.camera, c2w, uv, rc["near"], rc["far"], int(rc["n_coarse"]),
+                                        int(rc["n_fine"]), self.opts.min_acc, self.opts.render_chunk)
         try:
-            self.tracker.set_reference(np.asarray(f.rgb), depth, c2w, frame_index=seq)
+            self.tracker.set_reference(rgb, depth, c2w, frame_index=seq)
         except ValueError as e:
             self.counters.inc("reference_failures")
-            self.last_error = f"reference at frame {seq}: {e}"
+            self.last_error = f"{what} at frame {seq}: {e}"
             return False
         self.ref_seq = seq
-        self.counters.inc("references")
+        self.counters.inc(counter)
         self.counters.set("reference_ms", round((time.perf_counter() - t0) * 1e3, 1))
         return True
 
@@ -355,7 +313,7 @@ class TrackerCore:
             for s in range(self.last_seq + 1, seq):
                 out.append(self._skip(s))
         self.last_seq = max(self.last_seq, seq)
-        out.append(("poses", P.Pose(seq=seq, timestamp=stamp, c2w=_rigid(c2w), source="tracker", quality=quality)))
+        out.append(("poses", P.Pose(seq=seq, timestamp=stamp, c2w=rigid_pose(c2w), source="tracker", quality=quality)))
         return out
 
     def _skip(self, seq: int, stamp: float = 0.0) -> Output:
@@ -429,18 +387,6 @@ class TrackerCore:
         return self._emit(f.seq, f.timestamp, res.c2w, float(max(res.inlier_ratio, 1e-6)))
 
 
-def _check_camera(cam) -> dict:
-    """A camera dict (protocol Frame.camera form) usable by the tracker, or ValueError."""
-    from fmapping.camera import PinholeCamera
-
-    try:
-        out = P.check_camera(cam, "camera")
-    except P.ProtocolError as e:
-        raise ValueError(str(e)) from None
-    PinholeCamera.from_dict(out)  # its own validation
-    return out
-
-
 def min_field_elements(cfg) -> int:
     """A lower bound on the number of parameters of the field ``cfg`` describes (the dominant
     tensors of each kind, see ``fmapping.field``), computed without building it."""
@@ -457,18 +403,6 @@ def min_field_elements(cfg) -> int:
         d_in = 3 * (1 + 2 * cfg.pe_freqs)
         return d_in * cfg.mlp_width + max(0, cfg.mlp_layers - 1) * cfg.mlp_width ** 2
     raise ValueError(f"unknown field kind {kind!r}")
-
-
-def _rigid(m: np.ndarray) -> np.ndarray:
-    m = np.array(m, np.float64)
-    u, _, vt = np.linalg.svd(m[:3, :3])
-    r = u @ vt
-    if np.linalg.det(r) < 0:
-        u[:, -1] *= -1
-        r = u @ vt
-    m[:3, :3] = r
-    m[3] = [0, 0, 0, 1]
-    return m
 
 
 def load_tracker_config(path=None):

@@ -7,16 +7,14 @@ field snapshot (late joiners and restarts continue from the current map).
 from __future__ import annotations
 
 import argparse
-import sys
 
-from fmapping import protocol as P
-from services.common import Service, add_common_args, query_latest, setup_logging
+from services.common import (Service, add_common_args, query_latest, run_main, service_parser, set_torch_threads,
+                             setup_logging)
 from services.tracker import TrackerCore, TrackerServiceOptions, load_tracker_config
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m services.tracker", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = service_parser("services.tracker", __doc__)
     p.add_argument("--config", default=None, help="YAML overrides of the tracker config (fmapping.tracking TrackerConfig)")
     p.add_argument("--use-depth", action="store_true", help="reference depth from the sensor when frames carry it")
     p.add_argument("--max-buffer", type=int, default=64, help="frames waiting for a map")
@@ -28,34 +26,22 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None, session=None, keys=None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.log_level, "tracker")
-    if args.threads > 0:
-        import torch
-
-        torch.set_num_threads(args.threads)
+    set_torch_threads(args.threads)
     cfg = load_tracker_config(args.config)
     opts = TrackerServiceOptions(max_buffer=args.max_buffer, use_depth=args.use_depth)
-    svc = Service("tracker", args, capacities={"control": 64, "field": 2, "poses": 8192, "frames": 64},
-                  session=session, keys=keys, install_signals=session is None)
-    try:
+    with Service("tracker", args, capacities={"control": 64, "field": 2, "poses": 8192, "frames": 64},
+                 session=session, keys=keys) as svc:
         return serve(svc, cfg, opts, args)
-    finally:
-        svc.close("done")
 
 
 def serve(svc: Service, cfg, opts: TrackerServiceOptions, args) -> int:
-    def bad(text: str) -> None:
-        svc.status.error(text)
-        svc.bad_input("%s", text)
-
-    core = TrackerCore(cfg, opts, counters=svc.counters, on_bad_input=bad)
+    core = TrackerCore(cfg, opts, counters=svc.counters, on_bad_input=svc.report_bad_input)
     keys = svc.keys
     svc.subscribe(keys.control, "control")
     svc.subscribe(keys.field, "field")
     svc.subscribe(keys.poses("mapper"), "poses")
     svc.subscribe(keys.frames, "frames")
-    svc.status.update(state="running")
-    svc.publish_status()
-    svc.start_heartbeat()
+    svc.start()
     latest = query_latest(svc.session, keys.latest, timeout=args.query_timeout)
     if latest is not None:
         core.handle("field", latest, keys.latest)
@@ -68,8 +54,8 @@ def serve(svc: Service, cfg, opts: TrackerServiceOptions, args) -> int:
         channel, (key, data) = item
         try:
             if channel == "control":
-                ctl = svc.decode(data, P.Control, key)
-                if ctl is None or not svc.addressed(ctl):
+                ctl = svc.control(data, key)
+                if ctl is None:
                     continue
                 if ctl.command == "stop":
                     stop = True
@@ -81,18 +67,9 @@ def serve(svc: Service, cfg, opts: TrackerServiceOptions, args) -> int:
             svc.counters.inc("errors")
             svc.status.error(f"{type(e).__name__}: {e}")
             svc.log.exception("tracker step failed")
-        svc.status.update(frame_seq=core.ack)
-        if core.last_error and core.last_error != svc.status.last_error:
-            svc.status.error(core.last_error)
+        svc.report_core(core)
     return 0
 
 
 if __name__ == "__main__":
-    from services.common import exit_process
-
-    try:
-        code = main()
-    except (FileNotFoundError, ValueError) as e:
-        print(f"services.tracker: error: {e}", file=sys.stderr)
-        code = 2
-    exit_process(code)  # outputs are written: skip the slow interpreter teardown
+    run_main(main, "services.tracker")

@@ -1,0 +1,256 @@
+"""Collect ``bench/results/*.json`` into one Markdown summary and the README's benchmark section.
+
+    python bench/report.py            # writes bench/results/summary.md and updates README.md
+    python bench/report.py --no-readme
+
+Each benchmark writes its own JSON (and, for mapping and system, its own PNG); this script
+only reads them. Missing results are listed as "not run", never invented. The README keeps
+the table between the markers ``<!-- bench:begin -->`` and ``<!-- bench:end -->``; the
+machine line is read off the machine that runs this script, and every table names the JSON
+it came from (each JSON records its own settings and timestamps).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import re
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Optional
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results"
+BEGIN, END = "<!-- bench:begin -->", "<!-- bench:end -->"
+
+
+def load(name: str) -> Optional[dict]:
+    p = RESULTS / f"{name}.json"
+    if not p.is_file():
+        return None
+    try:
+        return json.loads(p.read_text())
+    except json.JSONDecodeError as e:
+        raise SystemExit(f"{p}: not valid JSON ({e})") from e
+
+
+def fmt(x, nd: int = 2, unit: str = "") -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, float):
+        if x != x or x in (float("inf"), float("-inf")):
+            return str(x)
+        return f"{x:.{nd}f}{unit}"
+    return f"{x}{unit}"
+
+
+def table(header: list[str], rows: list[list]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def machine() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = ""
+    try:
+        kb = int(re.search(r"MemTotal:\s+(\d+)", Path("/proc/meminfo").read_text()).group(1))
+        mem = f", {kb / 2**20:.0f} GiB RAM"
+    except (OSError, AttributeError):
+        pass
+    try:
+        import torch
+
+        tv = f", torch {torch.__version__}"
+    except ImportError:  # pragma: no cover - the venv has torch
+        tv = ""
+    return f"{cpu}, {os.cpu_count()} cores{mem}, no GPU, Python {platform.python_version()}{tv}"
+
+
+def mapping_section() -> str:
+    d = load("mapping")
+    if d is None:
+        return "### Mapping (`bench/mapping.py`)\n\nnot run\n"
+    s = d["settings"]
+    out = [f"### Mapping (`bench/mapping.py` -> `mapping.json`, `mapping.png`)\n",
+           f"Synthetic rooms, {s['frames']} frames {s['size'][0]}x{s['size'][1]}, RGB only, GT poses, "
+           f"{s['threads']} torch thread(s). Quality against the visible GT cloud (5 cm threshold). "
+           "Targets: completion ratio >= 90 %, accuracy <= 5 cm, completion <= 3 cm, window update <= 2.0 s.\n"]
+    inter = d.get("interleaved_window_seconds", {})
+    rows = []
+    for name, v in d["variants"].items():
+        for r in v["runs"]:
+            t = inter.get(name) if r["seed"] == s["compare_seeds"][0] else None
+            rows.append([name, r["seed"], f"{r['parameters']:,}", fmt(r["completion_ratio"], 1, " %"),
+                         fmt(r["accuracy_cm"]), fmt(r["completion_cm"]), fmt(r.get("psnr_heldout"), 1),
+                         f"{fmt(r['window_seconds_min'])} / {fmt(r['window_seconds_median'])}",
+                         f"{fmt(t['min'])} / {fmt(t['median'])}" if t else "-",
+                         fmt(r.get("init_seconds"), 0), fmt(r.get("export_seconds"), 0)])
+    for extra in ("mapping_fields", "mapping_variants"):
+        e = load(extra)
+        if e is None:
+            continue
+        ei = e.get("interleaved_window_seconds", {})
+        for name, v in e["variants"].items():
+            if extra == "mapping_variants" and name == "cp":
+                continue  # the same CP run as in mapping.json
+            for r in v["runs"]:
+                t = ei.get(name)
+                rows.append([f"{name} ({extra}.json)", r["seed"], f"{r['parameters']:,}", fmt(r["completion_ratio"], 1, " %"),
+                             fmt(r["accuracy_cm"]), fmt(r["completion_cm"]), fmt(r.get("psnr_heldout"), 1),
+                             f"{fmt(r['window_seconds_min'])} / {fmt(r['window_seconds_median'])}",
+                             f"{fmt(t['min'])} / {fmt(t['median'])}" if t else "-",
+                             fmt(r.get("init_seconds"), 0), fmt(r.get("export_seconds"), 0)])
+    out.append(table(["variant", "seed", "params", "compl. ratio", "acc. cm", "compl. cm", "PSNR dB",
+                      "window s min / med (in run)", "window s min / med (interleaved)", "init s", "export s"],
+                     rows))
+    sp = load("mapping_speed")
+    if sp:
+        out.append(f"\nWindow update of the CP default (`bench/mapping.py --speed` -> `mapping_speed.json`; "
+                   f"{sp['iters_per_window']} iterations x {sp['rays_per_iter']} rays x {sp['samples_per_ray']} "
+                   f"samples, {sp['window_frames']}-frame window, after mapping {sp['frames_mapped']} frames): " +
+                   "; ".join(f"{t} thread(s) {fmt(v['min'])} / {fmt(v['median'])} s (min / median)"
+                             for t, v in sp["seconds"].items()) + ".\n")
+    out.append("\nThe in-run window times share the CPU with whatever else ran; the interleaved column "
+               "times every variant's window update round-robin in one process after the runs.\n")
+    real = load("mapping_real")
+    if real:
+        rows = []
+        if "tum_fr1_rpy" in real:
+            t = real["tum_fr1_rpy"]
+            rows.append(["TUM fr1_rpy (GT poses, RGB only)", f"{t['frames']} frames", f"held-out PSNR {fmt(t['psnr_heldout'], 1)} dB",
+                         f"{fmt(t.get('window_seconds_min'))} / {fmt(t.get('window_seconds_median'))}"])
+        if "lego" in real:
+            t = real["lego"]
+            rows.append(["NeRF lego", f"{t['train_views']} train / {t['test_views']} test views",
+                         f"novel-view PSNR {fmt(t['psnr_novel_views'], 1)} dB", "-"])
+        out.append("Real data (`bench/mapping.py --real-data` -> `mapping_real.json`):\n")
+        out.append(table(["data", "frames", "quality", "window s min / med"], rows))
+    return "\n".join(out) + "\n"
+
+
+def tracking_section() -> str:
+    d = load("tracking")
+    if d is None:
+        return "### Tracking (`bench/tracking.py`)\n\nnot run\n"
+    out = ["### Tracking (`bench/tracking.py` -> `tracking.json`)\n",
+           "Same frames for every method. ATE RMSE in cm after SE3 / Sim3 alignment; rotation error is the "
+           "mean per-frame angle, with the trajectory anchored at the first GT pose and after the best-fit "
+           "rotation between the two trajectories' orientations. "
+           "Targets: >= 15 fps at 320x240; TUM RGB only SE3 <= 2 cm and rotation <= 1 deg.\n"]
+    rows = []
+    for data_name, block in d.items():
+        if not isinstance(block, dict) or "frames" not in block:
+            continue
+        for method, r in block.items():
+            if not isinstance(r, dict) or "ate" not in r:
+                continue
+            a = r["ate"]
+            rows.append([data_name, method, fmt(r.get("fps_median"), 1), fmt(r.get("ms_median"), 1),
+                         fmt(a["se3"]["rmse_m"] * 100), fmt(a["sim3"]["rmse_m"] * 100),
+                         fmt(a["se3"].get("rot_first_mean_deg", a["none"].get("rot_err_mean_deg"))),
+                         fmt(a["se3"].get("rot_fit_mean_deg")), r.get("lost", "-")])
+    out.append(table(["data", "method", "fps (median)", "ms median", "ATE SE3 cm", "ATE Sim3 cm",
+                      "rot. err deg (from first GT pose)", "rot. err deg (best-fit rotation)", "lost"], rows))
+    return "\n".join(out) + "\n"
+
+
+def transport_section() -> str:
+    d = load("transport")
+    if d is None:
+        return "### Transport (`bench/transport.py`)\n\nnot run\n"
+    rows = []
+    for name, r in d["results"].items():
+        rows.append([name, f"{r['bytes']:,}", fmt(r["latency_ms"]["median"]), fmt(r["latency_ms"]["p95"]),
+                     fmt(r["latency_with_codec_ms"]["median"]), fmt(r["throughput"]["msgs_per_s"], 0)])
+    return "\n".join([
+        "### Transport (`bench/transport.py` -> `transport.json`)\n",
+        f"Two zenoh peer processes over loopback; goal: {d.get('goal', '')}.\n",
+        table(["message", "bytes", "one-way ms median", "p95", "median incl. encode+decode", "msgs/s"], rows)]) + "\n"
+
+
+def field_section() -> str:
+    d = load("field_micro")
+    if d is None:
+        return ""
+    rows = [[n, f"{r['params']:,}", r["flops_per_point"], fmt(r["min_s"], 3), fmt(r["median_s"], 3),
+             fmt(r["us_per_sample_min"])] for n, r in d["results"].items()]
+    return "\n".join([
+        "### Field micro-benchmark (`bench/field_micro.py` -> `field_micro.json`)\n",
+        f"One forward + backward + Adam step of {d['rays']} rays x {d['samples']} samples, {d['threads']} thread.\n",
+        table(["field", "params", "FLOPs/point", "min s", "median s", "us/sample (min)"], rows)]) + "\n"
+
+
+def system_section() -> str:
+    parts = [system_table(n) for n in ("system", "system_gt") if load(n) is not None]
+    return "\n".join(parts) if parts else "### End to end (`bench/system.py`)\n\nnot run\n"
+
+
+def system_table(name: str) -> str:
+    d = load(name)
+    st = d.get("settings", {})
+    rows = []
+    for run in d.get("runs", []):
+        r = run.get("summary", run)
+        tr, mp, rec = r.get("tracker", {}), r.get("mapper", {}), r.get("map") or {}
+        fps = r.get("fps")
+        rows.append([f"{fps:g} fps" if fps else "paced by consumers", fmt(r.get("wall_seconds"), 0),
+                     f"{tr.get('tracked', '-')} / {tr.get('lost', '-')} / {tr.get('dropped', '-')}",
+                     f"{tr.get('lag_frames_max', '-')} fr, {fmt(tr.get('lag_s_max'), 0)} s",
+                     f"{mp.get('mapped', '-')} / {mp.get('windows', '-')} / {mp.get('dropped_inbox', '-')}",
+                     fmt(mp.get("windows_behind_max"), 1), fmt(r.get("rss_mb_peak_total"), 0),
+                     fmt(rec.get("completion_ratio"), 1, " %"), fmt(rec.get("accuracy_cm"))])
+    return "\n".join([
+        f"### End to end (`bench/system.py` -> `{name}.json`, `{name}.png`)\n",
+        f"`fmapping up` on a synthetic room ({st.get('frames')} frames {st.get('size')}, poses from the "
+        f"{st.get('poses')}), all services as OS processes on this machine, sampled every "
+        f"{st.get('interval')} s over a monitoring zenoh session.\n",
+        table(["playback", "wall s", "tracker tracked / lost / dropped", "tracker lag max",
+               "mapper frames / windows / dropped", "windows behind max", "RSS peak MB (all)",
+               "map compl. ratio", "map acc. cm"], rows)]) + "\n"
+
+
+def build() -> str:
+    stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    parts = [f"Machine: {machine()}. Report built {stamp} by `python bench/report.py` from `bench/results/`; "
+             "`make bench` re-runs everything. The CPU here is shared and its speed swings 3-4x: "
+             "timings are min / median.\n",
+             mapping_section(), tracking_section(), system_section(), transport_section(), field_section()]
+    pngs = sorted(p.name for p in RESULTS.glob("*.png"))
+    if pngs:
+        parts.append("Plots: " + ", ".join(f"[{n}](bench/results/{n})" for n in pngs) + "\n")
+    return "\n".join(parts)
+
+
+def update_readme(readme: Path, body: str) -> None:
+    text = readme.read_text()
+    block = f"{BEGIN}\n{body}\n{END}"
+    if BEGIN in text and END in text:
+        text = text[: text.index(BEGIN)] + block + text[text.index(END) + len(END):]
+    else:
+        text = text.rstrip() + "\n\n## Benchmarks\n\n" + block + "\n"
+    readme.write_text(text)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--no-readme", action="store_true", help="only write bench/results/summary.md")
+    a = ap.parse_args(argv)
+    body = build()
+    (RESULTS / "summary.md").write_text(body)
+    if not a.no_readme:
+        update_readme(ROOT / "README.md", body)
+    print(body)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
