@@ -207,7 +207,9 @@ def system_table(name: str) -> str:
                      f"{tr.get('lag_frames_max', '-')} fr, {fmt(tr.get('lag_s_max'), 0)} s",
                      f"{mp.get('mapped', '-')} / {mp.get('windows', '-')} / {mp.get('dropped_inbox', '-')}",
                      fmt(mp.get("windows_behind_max"), 1), fmt(r.get("rss_mb_peak_total"), 0),
-                     fmt(rec.get("completion_ratio"), 1, " %"), fmt(rec.get("accuracy_cm"))])
+                     fmt(rec.get("completion_ratio"), 1, " %"), fmt(rec.get("accuracy_cm")),
+                     fmt((r.get("map_sim3_aligned") or {}).get("completion_ratio"), 1, " %"),
+                     fmt((r.get("map_sim3_aligned") or {}).get("accuracy_cm"))])
     return "\n".join([
         f"### End to end (`bench/system.py` -> `{name}.json`, `{name}.png`)\n",
         f"`fmapping up` on a synthetic room ({st.get('frames')} frames {st.get('size')}, poses from the "
@@ -215,7 +217,7 @@ def system_table(name: str) -> str:
         f"{st.get('interval')} s over a monitoring zenoh session.\n",
         table(["playback", "wall s", "tracker tracked / lost / dropped", "tracker lag max",
                "mapper frames / windows / dropped", "windows behind max", "RSS peak MB (all)",
-               "map compl. ratio", "map acc. cm"], rows)]) + "\n"
+               "map compl. ratio", "map acc. cm", "after Sim3: compl. ratio", "acc. cm"], rows)]) + "\n"
 
 
 def build() -> str:

@@ -375,10 +375,33 @@ def summarize(fps: float, rows: list[dict], mon: Monitor, out: Path, scene: Path
         gt = read_ply(scene / "gt_visible_cloud.ply").points
         s["map"] = _round(recon_metrics(pts, gt, threshold=0.05))
         s["map"]["eval_seconds"] = round(time.perf_counter() - t, 1)
+        sim3 = traj_sim3(out / "traj.txt", gt_traj) if len(pts) else None
+        if sim3 is not None:  # monocular maps have their own scale and frame: score them after the Sim3
+            sc, R, tr = sim3  # that aligns the mapper's trajectory to GT (as ATE does)
+            s["map_sim3_aligned"] = _round({**recon_metrics(sc * pts @ R.T + tr, gt, threshold=0.05), "scale": sc})
     else:
         s["map"] = {"error": "no map.ply"}
     s["outputs"] = sorted(p.name for p in out.iterdir() if p.is_file())
     return s
+
+
+def traj_sim3(est_path: Path, gt_path: Path):
+    """(s, R, t) aligning the positions of a TUM trajectory to GT (timestamps within 20 ms), or None."""
+    from fmapping.metrics import umeyama
+    from fmapping.trajectory import associate, read_tum_trajectory
+
+    if not (est_path.is_file() and gt_path.is_file()):
+        return None
+    try:
+        ts, est = read_tum_trajectory(est_path)
+        gts, gtp = read_tum_trajectory(gt_path)
+        idx = associate(ts, gts, 0.02)
+        ok = idx >= 0
+        if ok.sum() < 3:
+            return None
+        return umeyama(est[ok, :3, 3], gtp[idx[ok], :3, 3], with_scale=True)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
 
 
 def to_columns(rows: list[dict]) -> dict:

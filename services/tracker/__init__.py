@@ -47,6 +47,7 @@ class TrackerServiceOptions:
     use_depth: bool = False  # reference depth from the sensor when frames carry it (else rendered from the map)
     min_acc: float = 0.5  # rendered opacity below which a pixel has no depth
     render_chunk: int = 4096
+    seen_only: bool = True  # rendered reference depth only where a mapped frame looked (see seen_by)
 
 
 def render_depth(field, camera, c2w: np.ndarray, uv: np.ndarray, near: float, far: float, n_coarse: int,
@@ -80,6 +81,37 @@ def render_depth(field, camera, c2w: np.ndarray, uv: np.ndarray, near: float, fa
     return torch.cat(out).numpy() if out else np.zeros(0)
 
 
+def seen_by(points: np.ndarray, c2ws: list, camera, near: float, far: float, margin: float = 2.0) -> np.ndarray:
+    """Boolean (N,): which world points (N, 3) lie inside the viewing frustum (image with
+    ``margin`` pixels, depth in [near, far]) of at least one camera-to-world pose in ``c2ws``.
+
+    A factorised field is only constrained where mapped frames looked: elsewhere it
+    renders confident but meaningless depth (its factors extend structure into unseen
+    space), which makes the tracker drift without any sign of trouble (the warp explains
+    the image because the depth is wrong)."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    seen = np.zeros(len(pts), bool)
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+    for c2w in c2ws:
+        t = np.asarray(c2w, np.float64)
+        pc = (pts - t[:3, 3]) @ t[:3, :3]  # world -> camera: R^T (X - t)
+        z = pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = fx * pc[:, 0] / z + cx, fy * pc[:, 1] / z + cy
+        seen |= (z >= near) & (z <= far) & (u >= margin - 0.5) & (u <= camera.width - 0.5 - margin) \
+            & (v >= margin - 0.5) & (v <= camera.height - 0.5 - margin)
+        if seen.all():
+            break
+    return seen
+
+
+def _backproject(camera, c2w: np.ndarray, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """World points (N, 3) of pixels ``uv`` (N, 2) at camera depth ``z`` (N,) of a camera at ``c2w``."""
+    pc = np.stack([(uv[:, 0] - camera.cx) / camera.fx * z, (uv[:, 1] - camera.cy) / camera.fy * z, z], -1)
+    t = np.asarray(c2w, np.float64)
+    return pc @ t[:3, :3].T + t[:3, 3]
+
+
 Output = tuple[str, Any]
 
 
@@ -108,6 +140,7 @@ class TrackerCore(ServiceCore):
         self.last_seq = -1
         self.ref_seq = -1
         self._ref_target: Optional[int] = None  # frame to make the next reference at
+        self._motion_seq = -1  # frame of the newest pose in the tracker's motion model
         self.last_track: dict = {}
 
     @property
@@ -238,6 +271,7 @@ class TrackerCore(ServiceCore):
         self.snapshot_pose = None
         self.ref_seq = -1
         self._ref_target = None
+        self._motion_seq = -1
         self.counters.inc("resets")
 
     def _set_camera(self, cam: dict) -> None:
@@ -264,6 +298,35 @@ class TrackerCore(ServiceCore):
         cands = [s for s in self.recent if s <= target and self._pose_of(s) is not None]
         return max(cands) if cands else None
 
+    def _rechain_motion(self, target: int) -> None:
+        """Re-anchor the motion model after a new reference at mapped frame ``target``.
+
+        The map usually arrives late: by then the tracker has moved on past ``target``. Its
+        motion history (the newest tracked poses) is kept, moved by the map's correction of
+        ``target`` (``mapped @ inv(own estimate)``, left-multiplied as in :mod:`fmapping.geometry`),
+        so the next prediction stays at the current frame. Resetting the history to the poses of
+        ``target - 1`` and ``target`` would predict a pose many frames in the past: every later
+        frame then fails the pose-jump / inlier checks and, lost frames never updating the
+        motion model, tracking does not recover. When ``target`` is not older than the motion
+        model (mapper in step with the tracker, or the tracker lost since), the history restarts
+        from the mapped poses of ``target - 1`` and ``target``, extrapolated at constant velocity to
+        the newest frame already answered."""
+        hist = self.tracker.motion_history
+        if self._motion_seq > target and hist:
+            own, mapped = self.own_poses.get(target), self._pose_of(target)
+            if own is not None and mapped is not None:
+                corr = mapped @ np.linalg.inv(own)
+                self.tracker.reset_motion([corr @ h for h in hist])
+                self.counters.inc("motion_rechained")
+            return
+        prior = [h for h in (self._pose_of(s) for s in (target - 1, target)) if h is not None]
+        ahead = self.last_seq - target  # frames already answered past target (lost ones): move the model there
+        if len(prior) == 2 and 0 < ahead <= 64:
+            step = np.linalg.inv(prior[0]) @ prior[1]  # the body motion of one frame (constant velocity)
+            prior = [prior[1] @ np.linalg.matrix_power(step, ahead - 1), prior[1] @ np.linalg.matrix_power(step, ahead)]
+        self.tracker.reset_motion(prior)
+        self._motion_seq = max(target, self.last_seq) if len(prior) == 2 else target
+
     def _render_view(self, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """RGB (uint8) and depth (0 where the map is empty) of the map seen from ``c2w``."""
         from fmapping.render import render_image
@@ -274,6 +337,13 @@ class TrackerCore(ServiceCore):
         rgb = (r["rgb"].clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
         depth = np.where(r["acc"].cpu().numpy() >= self.opts.min_acc, r["depth_normalized"].cpu().numpy(), 0.0)
         return rgb, depth.astype(np.float32)
+
+    def _mapped_poses(self) -> list:
+        """Poses of the frames integrated into the map we hold (the mapper's, up to ``map_seq``)."""
+        out = [c for s, c in self.mapper_poses.items() if s <= self.map_seq]
+        if self.snapshot_pose is not None and self.snapshot_pose[0] not in self.mapper_poses:
+            out.append(self.snapshot_pose[1])
+        return out
 
     def _make_reference(self, seq: int) -> bool:
         f = self.recent.get(seq)
@@ -291,9 +361,18 @@ class TrackerCore(ServiceCore):
             else:
                 rc = self.render_cfg
 
+                mapped = self._mapped_poses()
+
                 def depth(uv: np.ndarray) -> np.ndarray:
-                    return render_depth(self.field, self.camera, c2w, uv, rc["near"], rc["far"], int(rc["n_coarse"]),
-                                        int(rc["n_fine"]), self.opts.min_acc, self.opts.render_chunk)
+                    z = render_depth(self.field, self.camera, c2w, uv, rc["near"], rc["far"], int(rc["n_coarse"]),
+                                     int(rc["n_fine"]), self.opts.min_acc, self.opts.render_chunk)
+                    if self.opts.seen_only and mapped:
+                        ok = np.isfinite(z)
+                        pts = _backproject(self.camera, c2w, np.asarray(uv, np.float64)[ok], z[ok])
+                        keep = seen_by(pts, mapped, self.camera, rc["near"], rc["far"])
+                        z = z.copy()
+                        z[np.flatnonzero(ok)[~keep]] = np.nan
+                    return z
         try:
             self.tracker.set_reference(rgb, depth, c2w, frame_index=seq)
         except ValueError as e:
@@ -342,6 +421,7 @@ class TrackerCore(ServiceCore):
                 if c2w is not None:
                     self.waiting.popitem(last=False)
                     self.tracker.observe(c2w)
+                    self._motion_seq = seq
                     self.counters.inc("poses_from_mapper")
                     out += self._emit(seq, f.timestamp, c2w, None)
                     continue
@@ -354,8 +434,7 @@ class TrackerCore(ServiceCore):
                     break  # the mapper's pose of its newest frame is on its way
                 self._ref_target = None
                 if target is not None and self._make_reference(target):
-                    hist = [self._pose_of(s) for s in (target - 1, target)]
-                    self.tracker.reset_motion([h for h in hist if h is not None])
+                    self._rechain_motion(target)
             self.waiting.popitem(last=False)
             if self.tracker.reference is None:
                 # a map but no usable reference (e.g. the map is still empty there): answer, never stall
@@ -379,6 +458,7 @@ class TrackerCore(ServiceCore):
         if res.relocalised:
             self.counters.inc("relocalised")
         self.own_poses[f.seq] = np.array(res.c2w)
+        self._motion_seq = f.seq
         while len(self.own_poses) > self.opts.max_poses:
             self.own_poses.pop(min(self.own_poses))
         if res.need_keyframe:
