@@ -70,14 +70,14 @@ def run_one(data: Path, overrides: dict, threads: int, export_every: int = 3, ke
     from fmapping.export import export_point_cloud
     from fmapping.mapper import Mapper, MapperConfig
     from fmapping.metrics import recon_metrics
-    from fmapping.pipeline import _heldout_psnr, _scene_aabb
+    from fmapping.pipeline import _heldout_psnr, scene_aabb
     from fmapping.ply import read_ply
 
     torch.set_num_threads(threads)
     ds = open_dataset(data)
     cfg = merge(MapperConfig(), {**overrides, "optimize_init_poses": False})
     poses = list(ds.gt_poses)
-    mapper = Mapper(cfg, ds.camera, aabb=_scene_aabb(ds, cfg, poses))
+    mapper = Mapper(cfg, ds.camera, aabb=scene_aabb(ds, cfg, poses))
     t0 = time.perf_counter()
     for i in range(len(ds)):
         f = ds[i]
@@ -139,13 +139,13 @@ def speed(data: Path, frames: int, rounds: int, thread_counts: list[int]) -> dic
     from fmapping.datasets import open_dataset
     from fmapping.mapper import Mapper, MapperConfig
     from fmapping.config import merge
-    from fmapping.pipeline import _scene_aabb
+    from fmapping.pipeline import scene_aabb
 
     torch.set_num_threads(max(thread_counts))
     ds = open_dataset(data)
     cfg = merge(MapperConfig(), {"optimize_init_poses": False})
     poses = list(ds.gt_poses)
-    mapper = Mapper(cfg, ds.camera, aabb=_scene_aabb(ds, cfg, poses))
+    mapper = Mapper(cfg, ds.camera, aabb=scene_aabb(ds, cfg, poses))
     for i in range(min(frames, len(ds))):
         f = ds[i]
         mapper.add_frame(f.rgb, poses[i], f.timestamp)
@@ -324,7 +324,7 @@ def run_real(threads: int, out_dir: Path) -> dict:
     from fmapping.datasets import open_dataset
     from fmapping.mapper import Mapper, MapperConfig
     from fmapping.metrics import psnr
-    from fmapping.pipeline import _scene_aabb
+    from fmapping.pipeline import scene_aabb
 
     torch.set_num_threads(threads)
     data = ROOT.parent / "shared" / "data"
@@ -334,7 +334,7 @@ def run_real(threads: int, out_dir: Path) -> dict:
         ds = open_dataset(tum_dir)
         cfg = merge(MapperConfig(), {"far": 4.0, "optimize_init_poses": False})
         poses = list(ds.gt_poses)
-        m = Mapper(cfg, ds.camera, aabb=_scene_aabb(ds, cfg, poses))
+        m = Mapper(cfg, ds.camera, aabb=scene_aabb(ds, cfg, poses))
         t0 = time.perf_counter()
         used = [i for i in range(len(ds)) if poses[i] is not None]
         for i in used:

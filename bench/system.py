@@ -386,20 +386,14 @@ def summarize(fps: float, rows: list[dict], mon: Monitor, out: Path, scene: Path
 
 
 def traj_sim3(est_path: Path, gt_path: Path):
-    """(s, R, t) aligning the positions of a TUM trajectory to GT (timestamps within 20 ms), or None."""
-    from fmapping.metrics import umeyama
-    from fmapping.trajectory import associate, read_tum_trajectory
+    """(s, R, t) aligning a TUM trajectory's positions to GT (as the Sim3 ATE does), or None."""
+    from fmapping.metrics import align_trajectory, match_trajectory_files
 
     if not (est_path.is_file() and gt_path.is_file()):
         return None
     try:
-        ts, est = read_tum_trajectory(est_path)
-        gts, gtp = read_tum_trajectory(gt_path)
-        idx = associate(ts, gts, 0.02)
-        ok = idx >= 0
-        if ok.sum() < 3:
-            return None
-        return umeyama(est[ok, :3, 3], gtp[idx[ok], :3, 3], with_scale=True)
+        est, gt, _, _ = match_trajectory_files(est_path, gt_path)
+        return align_trajectory(est, gt, "sim3")[1]
     except (ValueError, np.linalg.LinAlgError):
         return None
 

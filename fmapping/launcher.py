@@ -129,7 +129,7 @@ def scene_box(data: Path, mapper_overrides: dict) -> Optional[list]:
     from fmapping.config import merge
     from fmapping.datasets import open_dataset
     from fmapping.mapper import MapperConfig
-    from fmapping.pipeline import _scene_aabb
+    from fmapping.pipeline import scene_aabb
 
     cfg = merge(MapperConfig(), mapper_overrides)
     if cfg.bbox is not None:
@@ -139,7 +139,7 @@ def scene_box(data: Path, mapper_overrides: dict) -> Optional[list]:
     has_scene = isinstance(ds.meta, dict) and isinstance(ds.meta.get("scene"), dict)
     if not poses and not has_scene:
         return None
-    box = _scene_aabb(ds, merge(cfg, {"use_depth": True}), poses)  # depth only bounds the box here
+    box = scene_aabb(ds, cfg, poses, use_depth=True)  # depth, when present, only bounds the box here
     return None if box is None else [[float(v) for v in box[0]], [float(v) for v in box[1]]]
 
 

@@ -369,6 +369,20 @@ def eval_traj_files(est, gt, align: str = "sim3", max_dt: float = 0.02, delta: i
     run) over consecutive matched poses. The well-posed orientation errors are
     ``ate.rot_fit_*`` / ``ate.rot_first_mean_deg`` (see :func:`ate`) and
     ``rpe.rot_rmse_deg``. Fewer than 3 matches is a ValueError."""
+    est_m, gt_m, n_est, n_gt = match_trajectory_files(est, gt, max_dt)
+    a = ate(est_m, gt_m, align)
+    aligned, _ = align_trajectory(est_m, gt_m, align)
+    return {
+        "est": str(est), "gt": str(gt), "align": align, "max_dt": float(max_dt),
+        "n_est": n_est, "n_gt": n_gt, "n_matched": int(len(est_m)),
+        "ate": a, "rpe": rpe(aligned, gt_m, delta=delta),
+    }
+
+
+def match_trajectory_files(est, gt, max_dt: float = 0.02) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Read two TUM trajectories and pair them one-to-one by timestamp (within ``max_dt`` s):
+    ``(est_c2w, gt_c2w, n_est, n_gt)``, matched poses in estimate time order. Fewer than 3
+    matches is a ValueError naming both files."""
     from fmapping.trajectory import read_tum_trajectory
 
     ets, ec = read_tum_trajectory(est)
@@ -379,14 +393,7 @@ def eval_traj_files(est, gt, align: str = "sim3", max_dt: float = 0.02, delta: i
             f"only {len(i)} timestamp matches within max_dt={max_dt}s between {est} ({len(ets)} poses, "
             f"t={ets.min():.3f}..{ets.max():.3f}) and {gt} ({len(gts)} poses, t={gts.min():.3f}..{gts.max():.3f}); "
             "need at least 3")
-    est_m, gt_m = ec[i], gc[j]
-    a = ate(est_m, gt_m, align)
-    aligned, _ = align_trajectory(est_m, gt_m, align)
-    return {
-        "est": str(est), "gt": str(gt), "align": align, "max_dt": float(max_dt),
-        "n_est": int(len(ets)), "n_gt": int(len(gts)), "n_matched": int(len(i)),
-        "ate": a, "rpe": rpe(aligned, gt_m, delta=delta),
-    }
+    return ec[i], gc[j], int(len(ets)), int(len(gts))
 
 
 # ----------------------------------------------------------------------------- images

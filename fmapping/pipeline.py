@@ -55,7 +55,11 @@ def _pose_source(ds, poses_arg: str) -> list:
     return [c2w[j] if j >= 0 else None for j in idx]
 
 
-def _scene_aabb(ds, cfg: MapperConfig, poses: list) -> Optional[np.ndarray]:
+def scene_aabb(ds, cfg: MapperConfig, poses: list, use_depth: Optional[bool] = None) -> Optional[np.ndarray]:
+    """The mapper's box for ``ds``: None when ``cfg.bbox`` is set (the mapper takes it), else the
+    synthetic scene's box, else the dataset's depth (when ``use_depth``, default ``cfg.use_depth``),
+    else the frusta of ``poses`` (None entries skipped)."""
+    use_depth = cfg.use_depth if use_depth is None else use_depth
     if cfg.bbox is not None:
         return None  # the mapper takes it from its config
     scene = ds.meta.get("scene") if isinstance(ds.meta, dict) else None
@@ -64,7 +68,7 @@ def _scene_aabb(ds, cfg: MapperConfig, poses: list) -> Optional[np.ndarray]:
         return np.stack([np.asarray(b["min"], np.float64) - cfg.bbox_margin,
                          np.asarray(b["max"], np.float64) + cfg.bbox_margin])
     known = [(i, p) for i, p in enumerate(poses) if p is not None]
-    if cfg.use_depth and ds.has_depth:
+    if use_depth and ds.has_depth:
         step = max(1, len(known) // 30)
         sel = known[::step]
         box = aabb_from_depth(np.stack([p for _, p in sel]), [ds[i].depth for i, _ in sel], ds.camera, cfg.bbox_margin)
@@ -205,7 +209,7 @@ def run_map(args) -> dict:
     ds = open_job_dataset(args)
     cfg = build_config(args)
     poses = _pose_source(ds, getattr(args, "poses", "gt"))
-    aabb = _scene_aabb(ds, cfg, poses)
+    aabb = scene_aabb(ds, cfg, poses)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     mapper = Mapper(cfg, ds.camera, aabb=aabb)
