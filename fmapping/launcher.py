@@ -24,7 +24,13 @@ With ``--poses external`` a producer must publish ``Pose(source="external")`` (s
 ``--config`` YAML: either mapper overrides at the top level (like ``fmapping map``), or
 sections ``mapper:``, ``tracker:`` and ``launcher:`` (keys: ``timeout`` seconds,
 ``view`` true/false, ``window`` frames in flight, ``frames`` / ``size`` / ``seed`` of
-the generated scene, ``threads`` per torch process).
+the generated scene, ``threads`` per torch process, ``tracker_frontend`` mono|map).
+
+With ``--poses tracker`` the tracker's default front end is ``mono`` (RGB only from the
+first frame, world frame and scale from the first GT poses that play publishes, exactly
+as ``fmapping slam``); the mapper takes its poses as given. ``tracker_frontend: map`` runs
+the paper-style loop instead: the mapper initialises without poses (``--unposed-init yes``)
+and the tracker follows its field.
 """
 from __future__ import annotations
 
@@ -44,6 +50,10 @@ import yaml
 from fmapping.config import read_yaml_mapping
 
 SECTIONS = ("mapper", "tracker", "launcher")
+# Frames play keeps in flight with the mono tracker: the mapper can take no frame before the
+# tracker's bootstrap answers (it held 7-14 frames on the synthetic rooms); a smaller window
+# stalls playback until the mapper's pose timeout. Both inboxes hold more (mapper 32, tracker 64).
+MONO_BOOTSTRAP_WINDOW = 20
 EXTERNAL_SOURCE = "external"  # pose source and status name of an external producer (poses/external, status/external)
 
 
@@ -56,6 +66,7 @@ class LauncherOptions:
     size: tuple = (320, 240)
     seed: int = 0
     threads: int = 0
+    tracker_frontend: str = "mono"  # --poses tracker: "mono" (RGB-only front end, as fmapping slam) | "map"
     start_timeout: float = 120.0
     grace: float = 15.0  # seconds between SIGINT and SIGKILL on shutdown
     extra: dict = field(default_factory=dict)
@@ -266,8 +277,13 @@ def run_up(args) -> int:
     py = [sys.executable, "-m"]
     threads = ["--threads", str(opts.threads)] if opts.threads else []
 
+    if opts.tracker_frontend not in ("mono", "map"):
+        raise ValueError(f"launcher.tracker_frontend must be 'mono' or 'map', got {opts.tracker_frontend!r}")
+    mono = poses == "tracker" and opts.tracker_frontend == "mono"
     mapper_cfg = with_scene_box(mapper_cfg, data, out)
     mapper_argv = py + ["services.mapper", "--poses", poses, "--out", str(out)] + net() + threads
+    if poses == "tracker" and not mono:
+        mapper_argv += ["--unposed-init", "yes"]  # the map tracker tracks only once the mapper has a map
     if mapper_cfg:
         mapper_argv += ["--config", str(mapper_cfg)]
     record_src = poses
@@ -292,7 +308,7 @@ def run_up(args) -> int:
                                  env)
             later.append(procs["view"])
         if poses == "tracker":
-            targv = py + ["services.tracker"] + net() + threads
+            targv = py + ["services.tracker", "--frontend", opts.tracker_frontend] + net() + threads
             if tracker_cfg:
                 targv += ["--config", str(tracker_cfg)]
             procs["tracker"] = Proc("tracker", targv, out, env)
@@ -306,8 +322,9 @@ def run_up(args) -> int:
                   f"  {sys.executable} examples/publish_poses.py --traj TRAJ.txt --source {EXTERNAL_SOURCE} "
                   f"--connect {mesh[0]} --ns {ns}",
                   flush=True)
+        window = max(opts.window, MONO_BOOTSTRAP_WINDOW) if mono else opts.window
         play_argv = py + ["services.io", "play", "--data", str(data), "--fps", str(args.fps or 0),
-                          "--window", str(opts.window), "--ack-from", "mapper", "--wait-for", ",".join(wait_for),
+                          "--window", str(window), "--ack-from", "mapper", "--wait-for", ",".join(wait_for),
                           "--start-timeout", str(play_start_timeout)] + net()
         procs["play"] = Proc("play", play_argv, out, env)
         return _monitor(procs, t0, timeout, out)

@@ -26,7 +26,7 @@ Conventions (stated once, used by every function here):
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 from scipy import ndimage
@@ -149,11 +149,14 @@ def recon_metrics(pred_pts, gt_pts, threshold: float = 0.05) -> dict:
     return out
 
 
-def eval_recon_files(pred, gt, samples: int = 200_000, threshold: float = 0.05, seed: int = 0) -> dict:
+def eval_recon_files(pred, gt, samples: int = 200_000, threshold: float = 0.05, seed: int = 0,
+                     align: Optional[tuple] = None) -> dict:
     """Read two PLY files (mesh or cloud each), sample up to ``samples`` points on
     each (see :func:`sample_surface`; the GT uses ``seed + 1``) and return
     :func:`recon_metrics` plus ``pred``/``gt`` paths, ``pred_kind``/``gt_kind``
-    (``"mesh"`` or ``"cloud"``) and ``samples``."""
+    (``"mesh"`` or ``"cloud"``) and ``samples``. ``align = (s, R, t)`` first moves the
+    prediction by ``x -> s R x + t`` (e.g. the Sim3 that aligns a monocular trajectory to the
+    GT, :func:`align_trajectory`); the result then also holds ``align_scale``."""
     from fmapping.ply import read_ply
 
     if samples <= 0:
@@ -162,8 +165,14 @@ def eval_recon_files(pred, gt, samples: int = 200_000, threshold: float = 0.05, 
     kind = lambda d: "mesh" if d.faces is not None and len(d.faces) else "cloud"  # noqa: E731
     if len(gd.points) == 0:
         raise ValueError(f"{gt}: ground-truth PLY has no vertices")
-    res = recon_metrics(sample_surface(pd, samples, seed), sample_surface(gd, samples, seed + 1), threshold)
+    pts = sample_surface(pd, samples, seed)
+    if align is not None:
+        sc, rot, t = align
+        pts = float(sc) * pts @ np.asarray(rot, np.float64).T + np.asarray(t, np.float64)
+    res = recon_metrics(pts, sample_surface(gd, samples, seed + 1), threshold)
     res.update(pred=str(pred), gt=str(gt), pred_kind=kind(pd), gt_kind=kind(gd), samples=int(samples))
+    if align is not None:
+        res["align_scale"] = float(align[0])
     if "note" in res:
         res["note"] = f"{pred}: {res['note']}"
     return res

@@ -160,16 +160,21 @@ def write_map_outputs(mapper: Mapper, poses: dict, camera, out: Path, *, near: f
             "seconds": time.perf_counter() - t0}
 
 
-def recon_stats(ds, out: Path, mesh: bool = False) -> dict:
+def recon_stats(ds, out: Path, mesh: bool = False, sim3: Optional[tuple] = None) -> dict:
     """Reconstruction metrics (NICE-SLAM protocol, 200k samples, 5 cm) of ``out/map.ply`` - and of
     ``out/mesh.ply`` with ``mesh`` - against the dataset's visible GT cloud
-    (``meta["gt_visible_cloud"]``): ``{"recon": ..., "recon_mesh": ...}``, ``{}`` without one."""
+    (``meta["gt_visible_cloud"]``): ``{"recon": ..., "recon_mesh": ...}``, ``{}`` without one.
+    With ``sim3 = (s, R, t)`` (the trajectory's alignment to the GT) also ``"recon_sim3"``: the
+    map moved by it first, the usual protocol for monocular maps."""
     gt_cloud = ds.meta.get("gt_visible_cloud") if isinstance(ds.meta, dict) else None
     if not gt_cloud or not Path(gt_cloud).is_file():
         return {}
     from fmapping.metrics import eval_recon_files
 
     res = {"recon": eval_recon_files(str(out / "map.ply"), gt_cloud, samples=200_000, threshold=0.05, seed=0)}
+    if sim3 is not None:
+        res["recon_sim3"] = eval_recon_files(str(out / "map.ply"), gt_cloud, samples=200_000, threshold=0.05,
+                                             seed=0, align=sim3)
     if mesh:
         res["recon_mesh"] = eval_recon_files(str(out / "mesh.ply"), gt_cloud, samples=200_000, threshold=0.05, seed=0)
     return res
@@ -178,9 +183,10 @@ def recon_stats(ds, out: Path, mesh: bool = False) -> dict:
 def write_stats(out: Path, stats: dict, summary: dict) -> dict:
     """Copy the main reconstruction metrics (if any) into ``summary``, store it as
     ``stats["summary"]`` and write ``out/stats.json``; returns ``stats``."""
-    if "recon" in stats:
-        summary.update({k: stats["recon"][k] for k in ("accuracy_cm", "completion_cm", "completion_ratio")
-                        if k in stats["recon"]})
+    for key, suffix in (("recon", ""), ("recon_sim3", "_sim3")):
+        if key in stats:
+            summary.update({k + suffix: stats[key][k] for k in ("accuracy_cm", "completion_cm", "completion_ratio")
+                            if k in stats[key]})
     stats["summary"] = summary
     (out / "stats.json").write_text(json.dumps(stats, indent=2, default=json_default))
     return stats

@@ -17,7 +17,7 @@ Pose sources (``args.poses``):
   and sparse landmarks; every frame is then aligned photometrically
   (:class:`~fmapping.tracking.frontend.DirectTracker`, the fast path) to the current
   keyframe, whose depth comes from the landmarks (plus depth rendered from the map
-  once the map agrees with the landmarks); keyframes are refined by a windowed bundle
+  where mapped frames looked, for each keyframe at which it agrees with the landmarks); keyframes are refined by a windowed bundle
   adjustment. The mapper receives the tracked poses (its init pose optimisation is
   off unless ``slam.mapper_refines_init``). ``slam.frontend: map`` is the paper-style
   alternative: constant-depth bootstrap guesses refined by the mapper's init, then
@@ -84,7 +84,6 @@ class SlamConfig:
     frontend: str = "mono"  # RGB-only front end: "mono" (two-view bootstrap + BA, sparse depth; map depth added
     #                         when it agrees) | "map" (mapper init from constant-depth guesses, rendered depth only)
     mapper_refines_init: bool = False  # let the mapper's init re-estimate the front end's init poses
-    map_depth_check: float = 0.1  # map depth is used once its median relative gap to the landmarks is below this
     tracking: str = "direct"  # photometric tracking path: "direct" | "render_compare"
     init_depth: float = 2.0  # assumed depth of the constant-depth plane of the bootstrap (units if no anchor)
     scale_anchor: str = "auto"  # "auto" | "gt" | "depth" | "none"
@@ -184,6 +183,19 @@ def _ate_block(est: np.ndarray, gt: list) -> Optional[dict]:
     return res
 
 
+def _sim3_to_gt(est: np.ndarray, gt: list) -> Optional[tuple]:
+    """(s, R, t) aligning the estimated camera positions to the GT ones (as the Sim3 ATE does)."""
+    from fmapping.metrics import align_trajectory
+
+    ok = [i for i, g in enumerate(gt) if g is not None]
+    if len(ok) < 3:
+        return None
+    try:
+        return align_trajectory(np.stack([est[i] for i in ok]), np.stack([gt[i] for i in ok]), "sim3")[1]
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+
+
 # ----------------------------------------------------------------------------- the loop
 class SlamRun:
     """State of one SLAM run over a dataset (see the module docstring)."""
@@ -222,7 +234,6 @@ class SlamRun:
         self.degraded = False  # True while the map cannot give depth: references use the constant-depth plane
         self.boot_scale = 1.0
         self.init_degraded = False
-        self.map_checks: list = []
         self.frontend: Optional[MonoFrontend] = None
         self.tracker: Optional[DirectTracker] = None
         self.view: Optional[MapView] = None
@@ -446,22 +457,6 @@ class SlamRun:
             return None if g[k] is None else float(np.linalg.norm(g[k][:3, 3] - g[0][:3, 3]))
         return base
 
-    def _map_agrees(self, fe: MonoFrontend, i: int) -> bool:
-        """Does the map's rendered depth agree with the front end's landmarks at keyframe ``i``?"""
-        ref = fe.tracker.reference
-        if ref is None or len(ref.points) < 20 or self.view is None:
-            return False
-        n = min(len(ref.points), 300)
-        uv = ref.uv[:n].astype(np.float64)
-        d = self.view.depth_at(ref.c2w, uv)
-        z = ref.points[:n, 2]
-        ok = np.isfinite(d)
-        if ok.mean() < 0.5:
-            return False
-        gap = float(np.median(np.abs(d[ok] - z[ok]) / z[ok]))
-        self.map_checks.append({"frame": i, "gap": gap, "rendered": float(ok.mean())})
-        return gap < self.cfg.map_depth_check
-
     def run_mono(self) -> None:
         cfg = self.cfg
         n = len(self.ds)
@@ -493,11 +488,10 @@ class SlamRun:
             self.est[f.index] = out[f.index]
             self.track_ms[f.index] = boot_ms if f.index else 0.0
             self._after_window(self._add_to_mapper(f.index, f.rgb, out[f.index], f.timestamp, f.depth))
-        map_ok = False
         for i in self._iter(range(i, n), "slam"):
             f = self.ds[i]
-            kf_before = fe.keyframe_index
-            extra = self.view.depth_fn if (map_ok and self.view is not None) else None
+            # map depth for new keyframes; the front end uses it only where it agrees with the landmarks
+            extra = self.view.depth_fn if self.view is not None else None
             r = fe.track(i, f.rgb, extra_depth=extra)
             info = r.to_dict()
             self.track_ms[i] = info["ms"]
@@ -508,10 +502,6 @@ class SlamRun:
                                          "reference": r.reference})
             if not r.lost or cfg.feed_lost_frames:
                 self._after_window(self._add_to_mapper(i, f.rgb, r.c2w, f.timestamp, f.depth))
-            if fe.keyframe_index != kf_before and self.view is not None and not map_ok:
-                map_ok = self._map_agrees(fe, i)
-                if map_ok:
-                    self.notes.append(f"frame {i}: map depth agrees with the landmarks; references add it")
         # BA-refined poses of every tracked frame
         for k, p in fe.poses().items():
             self.est[k] = p
@@ -661,14 +651,14 @@ def run_slam(args) -> dict:
         "mapper": mstats,
         "export": export,
         "notes": run.notes,
-        "map_depth_checks": run.map_checks,
+        "map_depth_checks": run.frontend.dense_checks if run.frontend is not None else [],
         "seconds": {"loop": t_loop, "total": time.perf_counter() - t_start},
         "torch_threads": torch.get_num_threads(),
     }
     ate_res = _ate_block(est, list(ds.gt_poses)) if run.has_gt else None
     stats["ate"] = ate_res
     if export is not None and export["points"] > 0:
-        stats.update(recon_stats(ds, out))
+        stats.update(recon_stats(ds, out, sim3=_sim3_to_gt(est, list(ds.gt_poses))))
     summary = {
         "out": str(out),
         "poses": poses_mode,

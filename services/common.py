@@ -5,7 +5,7 @@ status counters and heartbeats, signal handling, and what the zenoh-free service
 Only ``services/`` imports zenoh; the library (``fmapping``) never does, and neither do the
 service cores (this module imports zenoh only when a session or config is made). Every service
 follows the same shape: zenoh callbacks do no work beyond copying the payload into a
-bounded, drop-oldest :class:`Inbox`; one worker loop (the main thread) decodes with
+bounded :class:`Inbox` (drop-oldest, or thinned); one worker loop (the main thread) decodes with
 :mod:`fmapping.protocol`, calls the library and publishes results. A message that fails
 to decode is counted (``decode_errors``) and logged (rate limited); it never reaches the
 service's state.
@@ -249,6 +249,9 @@ class Counters:
             self._c[name] = self._c.get(name, 0) + n
 
     def set(self, name: str, value: float) -> None:
+        # a Status carries numbers only: anything else would make every later status fail to encode
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+            raise TypeError(f"counter {name!r} must be a number, got {type(value).__name__} {value!r}")
         with self._lock:
             self._c[name] = value
 
@@ -353,23 +356,40 @@ class Inbox:
 
     ``get`` serves channels in the priority order given at construction (e.g. control
     before poses before frames). Drops are counted as ``dropped_<channel>``.
+
+    A channel in ``thin`` drops differently when full: the item whose neighbours arrived
+    closest together (:func:`thin_victim`), so that a backlog stays spread evenly over the
+    time it covers. The mapper's frames use it: while a long update runs it then gets a
+    subsampled stream rather than only the newest frames.
     """
 
-    def __init__(self, capacities: dict[str, int], counters: Optional[Counters] = None):
+    def __init__(self, capacities: dict[str, int], counters: Optional[Counters] = None, thin: Sequence[str] = ()):
         self._q = {name: collections.deque() for name in capacities}
         self._cap = dict(capacities)
+        self._thin = {name: collections.deque() for name in thin}  # arrival numbers of the thinned channels
+        self._arrivals = 0
         self._cond = threading.Condition()
         self.counters = counters or Counters()
 
     def put(self, channel: str, item: Any) -> bool:
-        """Append ``item``; returns False when the oldest item had to be dropped."""
+        """Append ``item``; returns False when an older item had to be dropped."""
         with self._cond:
             q = self._q[channel]
+            arr = self._thin.get(channel)
             dropped = False
-            if len(q) >= self._cap[channel]:
-                q.popleft()
-                dropped = True
-            q.append(item)
+            if arr is not None:
+                self._arrivals += 1
+                arr.append(self._arrivals)
+                q.append(item)
+                if len(q) > self._cap[channel]:
+                    i = thin_victim(arr)
+                    del q[i], arr[i]
+                    dropped = True
+            else:
+                if len(q) >= self._cap[channel]:
+                    q.popleft()
+                    dropped = True
+                q.append(item)
             self._cond.notify()
         self.counters.inc(f"received_{channel}")
         if dropped:
@@ -383,6 +403,8 @@ class Inbox:
             while True:
                 for name, q in self._q.items():
                     if q:
+                        if name in self._thin:
+                            self._thin[name].popleft()
                         return name, q.popleft()
                 left = None if end is None else end - time.monotonic()
                 if left is not None and left <= 0:
@@ -395,8 +417,19 @@ class Inbox:
 
     def clear(self) -> None:
         with self._cond:
-            for q in self._q.values():
+            for q in (*self._q.values(), *self._thin.values()):
                 q.clear()
+
+
+def thin_victim(arrivals: Sequence[int]) -> int:
+    """Index of the item to drop from a full thinned queue (arrival numbers, oldest first): the
+    one whose removal leaves the smallest gap between its neighbours, the oldest of equals.
+    The oldest and the newest item always stay."""
+    a = list(arrivals)
+    if len(a) < 3:
+        return 0
+    gaps = [a[i + 1] - a[i - 1] for i in range(1, len(a) - 1)]
+    return 1 + gaps.index(min(gaps))
 
 
 class ServiceInterrupted(BaseException):
@@ -512,12 +545,12 @@ class Service:
 
     def __init__(self, name: str, args, capacities: Optional[dict[str, int]] = None,
                  session: Optional[zenoh.Session] = None, keys: Optional[P.Keys] = None,
-                 install_signals: Optional[bool] = None):
+                 install_signals: Optional[bool] = None, thin: Sequence[str] = ()):
         self.name = name
         self.args = args
         self.status = StatusBoard(name)
         self.counters = self.status.counters
-        self.inbox = Inbox(capacities or {}, self.counters)
+        self.inbox = Inbox(capacities or {}, self.counters, thin)
         if install_signals is None:
             install_signals = session is None
         self.shutdown = Shutdown(install=install_signals, watch_parent=bool(getattr(args, "exit_with_parent", False)))

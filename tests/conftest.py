@@ -5,6 +5,8 @@
   tests do not fight over the two cores of CI.
 * ``scene`` (session) / ``dataset`` (module): a tiny synthetic RGB-D scene with GT poses,
   14 frames of 64x48, read only by the tests.
+* ``room320`` (session): a 40-frame 320x240 synthetic room, large enough for the RGB-only
+  front end to bootstrap and track.
 * ``zpair``: two zenoh peers in this process over a free loopback port (no router).
 """
 from __future__ import annotations
@@ -29,6 +31,16 @@ def scene(tmp_path_factory):
     out = tmp_path_factory.mktemp("scene") / "s"
     generate_scene(out, seed=2, frames=14, size=(64, 48), max_cloud_points=2000, mesh_spacing=0.2)
     return out
+
+
+@pytest.fixture(scope="session")
+def room320(tmp_path_factory):
+    from fmapping.synthetic import generate_scene
+
+    root = tmp_path_factory.mktemp("room320") / "syn"
+    generate_scene(root, seed=0, frames=40, size=(320, 240), supersample=1, max_cloud_points=20000,
+                   mesh_spacing=0.2)
+    return root
 
 
 @pytest.fixture(scope="module")

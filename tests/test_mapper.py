@@ -179,7 +179,7 @@ def test_pose_optimisation_at_init_reduces_pose_error():
     from fmapping.geometry import se3_exp
 
     scene, cam, c2w, views = tiny_scene(8)
-    cfg = tiny_config(init_frames=6, init_iters_per_round=100, optimize_init_poses=True, lr_pose=0.001,
+    cfg = tiny_config(init_frames=6, init_iters_per_round=200, optimize_init_poses=True, lr_pose=0.001,
                       final_global_iters=0)
     g = torch.Generator().manual_seed(1)
     noisy = [c2w[0]]
@@ -195,5 +195,6 @@ def test_pose_optimisation_at_init_reduces_pose_error():
     t1 = np.mean([np.linalg.norm(est[i][:3, 3] - c2w[i][:3, 3]) for i in range(1, 6)])
     r0 = np.mean([_rot_deg(noisy[i], c2w[i]) for i in range(1, 6)])
     r1 = np.mean([_rot_deg(est[i], c2w[i]) for i in range(1, 6)])
-    # measured (noise seeds 1, 2): 4.6 -> 1.8 cm, 0.92 -> 0.52 deg; 2.5 -> 1.6 cm, 0.92 -> 0.35 deg
+    # measured (noise seeds 1, 2): 4.6 -> 2.1 cm, 0.92 -> 0.42 deg; 2.5 -> 1.7 cm, 0.92 -> 0.24 deg. With 100
+    # iterations per round the rotation had not converged on every CPU (seed 1: 0.52 deg on one, 0.75 on another)
     assert t1 < 0.75 * t0 and r1 < 0.75 * r0, (t0, t1, r0, r1)

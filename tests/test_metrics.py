@@ -414,6 +414,26 @@ def test_cli_eval_recon_round_trip(tmp_path, capsys):
     assert json.loads(out)["completion_ratio"] == 0.0
 
 
+def test_eval_recon_files_scores_a_map_after_the_trajectory_sim3(tmp_path):
+    """A monocular map lives in the estimate's frame and scale. Moving it by the Sim3 that aligns
+    its trajectory to the GT (here known: the map is the GT seen through the inverse similarity)
+    gives back the GT scores; unaligned it scores nothing."""
+    gt = _plane(4000, 1.0, 7) + [0.0, 0.0, 1.0]
+    s, rot, t = 0.6, Rotation.from_rotvec([0.2, -0.1, 0.3]).as_matrix(), np.array([0.5, -0.2, 0.1])
+    est_traj = np.tile(np.eye(4), (5, 1, 1))
+    est_traj[:, :3, 3] = np.random.default_rng(1).normal(size=(5, 3))
+    gt_traj = est_traj.copy()
+    gt_traj[:, :3, :3] = rot @ est_traj[:, :3, :3]
+    gt_traj[:, :3, 3] = s * est_traj[:, :3, 3] @ rot.T + t
+    write_ply(tmp_path / "gt.ply", gt)
+    write_ply(tmp_path / "pred.ply", ((gt - t) @ rot) / s)  # the inverse of x -> s R x + t
+    sim3 = M.align_trajectory(est_traj, gt_traj, "sim3")[1]
+    np.testing.assert_allclose(sim3[0], s, rtol=1e-9)
+    r = M.eval_recon_files(tmp_path / "pred.ply", tmp_path / "gt.ply", samples=4000, align=sim3)
+    assert r["accuracy_cm"] < 1e-4 and r["completion_ratio"] == 100.0  # float32 PLY rounding and r["align_scale"] == pytest.approx(s)
+    assert M.eval_recon_files(tmp_path / "pred.ply", tmp_path / "gt.ply", samples=4000)["completion_ratio"] < 5.0
+
+
 def test_cli_eval_recon_meshes(tmp_path, capsys):
     verts = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
     faces = np.array([[0, 1, 2], [0, 2, 3]])

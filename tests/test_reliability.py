@@ -595,7 +595,7 @@ def test_fuzz_tracker_core_10k_malformed_messages(mapped, dataset):
     from services.tracker import TrackerCore, TrackerServiceOptions
 
     snap = P.decode(mapped.latest_field_bytes, P.FieldSnapshot)
-    core = TrackerCore(opts=TrackerServiceOptions(use_depth=True))  # references from the sensor depth
+    core = TrackerCore(opts=TrackerServiceOptions(frontend="map", use_depth=True))  # references from the sensor depth
     core.handle("frames", P.encode(P.frame_from_dataset(dataset[snap.frame_seq], seq=snap.frame_seq)))
     core.handle("field", mapped.latest_field_bytes)
     for p in mapped.window_poses():
@@ -910,9 +910,9 @@ WARMUP_SECONDS = 6.0
 
 
 @pytest.mark.slow
-def test_overload_playback_10x_faster_than_the_mapper_drops_oldest_and_rss_stays_flat(tmp_path):
-    """``io play --fps 50 --loop`` (no flow control) into a mapper that maps ~5 frames/s:
-    the mapper's bounded inbox drops the oldest frames (counted), every frame received is
+def test_overload_playback_faster_than_the_mapper_drops_frames_and_rss_stays_flat(tmp_path):
+    """``io play --fps 50 --loop`` (no flow control) into a mapper that maps a few frames/s:
+    the mapper's bounded (thinned) inbox drops frames (counted), every frame received is
     accounted for (dropped + consumed + still queued), and the mapper's RSS stays flat after
     warm-up while the offered load would have grown it by hundreds of MB."""
     from fmapping.synthetic import generate_scene
@@ -958,7 +958,8 @@ def test_overload_playback_10x_faster_than_the_mapper_drops_oldest_and_rss_stays
         int(c.get("stale_frames", 0)), c
     assert consumed - processed - int(c.get("frames_without_pose", 0)) <= 1, c  # at most one frame waits for its pose
     assert queued <= 32  # the inbox capacity
-    assert dropped > 0.5 * sent and sent >= 5 * processed, (sent, processed, dropped)
+    # overloaded: most frames were dropped (the mapper took 1/5 of them on one machine, 1/3 on a faster one)
+    assert dropped > 0.5 * sent, (sent, processed, dropped)
     # memory: flat after warm-up
     warm = [s for s in samples if s[0] >= WARMUP_SECONDS]
     assert len(warm) >= 8, samples
@@ -971,7 +972,7 @@ def test_overload_playback_10x_faster_than_the_mapper_drops_oldest_and_rss_stays
     processed_after = processed - int(warm[0][2].get("frames_processed", 0))
     bound_mb = 24 + processed_after / 2 * frame_bytes / 2 ** 20 * 2
     print(f"\n[overload] {OVERLOAD_SECONDS:.0f} s at {OVERLOAD_FPS:.0f} fps: play sent {sent}, mapper received {received}, "
-          f"dropped {dropped} (inbox drop-oldest), consumed {consumed}, mapped {processed} "
+          f"dropped {dropped} (thinned inbox), consumed {consumed}, mapped {processed} "
           f"({processed / OVERLOAD_SECONDS:.1f} fps), still queued {queued}, windows {c.get('windows')}; "
           f"stop took {took:.2f} s")
     print("[overload] mapper RSS MB by second: " + ", ".join(f"{t:.0f}:{r / 1024:.0f}" for t, r, _, _ in samples))
@@ -1120,7 +1121,7 @@ def test_restarted_tracker_process_resyncs_from_the_latest_snapshot_query(datase
     sub = session.declare_subscriber(keys.poses("tracker"), lambda s: tracked.put(P.decode(C.payload_bytes(s))))
     mapper = Svc("mapper", ["services.mapper", "--poses", "gt", "--config", str(cfg), "--threads", "1",
                             "--points-interval", "1000", "--checkpoint-every", "0"], tmp_path, ep_m, ns="trk")
-    targv = ["services.tracker", "--threads", "1", "--use-depth", "--query-timeout", "10"]
+    targv = ["services.tracker", "--frontend", "map", "--threads", "1", "--use-depth", "--query-timeout", "10"]
     tracker = Svc("tracker", targv, tmp_path, ep_t, [ep_m], ns="trk")
     again = None
     try:
@@ -1188,7 +1189,7 @@ def test_every_service_stops_within_5_seconds_on_a_signal_while_busy(scene, tmp_
     try:
         procs["mapper"] = start("mapper", ["services.mapper", "--poses", "gt", "--config", str(cfg), "--out", str(out),
                                            "--threads", "1", "--points-interval", "1"])
-        procs["tracker"] = start("tracker", ["services.tracker", "--threads", "1", "--use-depth"])
+        procs["tracker"] = start("tracker", ["services.tracker", "--frontend", "map", "--threads", "1", "--use-depth"])
         procs["record"] = start("record", ["services.io", "record", "--out", str(out / "record"), "--source", "gt"])
         procs["view"] = start("view", ["services.io", "view", "--save", str(out / "run.rrd")])
         procs["play"] = start("play", ["services.io", "play", "--data", str(scene), "--loop", "--ack-from", "mapper",

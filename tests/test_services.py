@@ -3,6 +3,7 @@ the mapper / tracker cores, flow control, late joiners, checkpoints, and a short
 ``fmapping up`` of real subprocesses. Synchronisation uses events and queues with timeouts."""
 from __future__ import annotations
 
+import dataclasses
 import queue
 import shutil
 import signal
@@ -71,6 +72,44 @@ def test_inbox_drops_oldest_and_serves_by_priority():
     t = threading.Timer(0.05, lambda: box.put("frames", 9))
     t.start()
     assert box.get(timeout=TIMEOUT) == ("frames", 9)  # wakes on put
+
+
+def test_counters_take_numbers_only():
+    """A Status carries numeric counters: a string would make every later status fail to encode
+    (the heartbeat then goes silent), so setting one is refused at once, naming the counter."""
+    c = C.Counters()
+    c.set("track_ms", 1.5)
+    c.set("bootstrap_frame", np.int64(7))
+    with pytest.raises(TypeError, match="scale_from"):
+        c.set("scale_from", "anchor")
+    P.decode(P.encode(P.Status(service="t", counters=c.snapshot())))
+
+
+def test_thinned_inbox_keeps_a_backlog_spread_over_time():
+    """A thinned channel (the mapper's frames) that overflows keeps its oldest and newest items
+    and drops where items lie closest together: 100 frames into 8 places leave the stream
+    subsampled (drop-oldest would keep 92..99)."""
+    assert C.thin_victim([1, 2, 3, 10]) == 1 and C.thin_victim([1, 5, 6, 7]) == 2 and C.thin_victim([4, 9]) == 0
+    box = C.Inbox({"control": 2, "frames": 8}, thin=("frames",))
+    for i in range(100):
+        assert box.put("frames", i) == (i < 8)
+    box.put("control", "stop")
+    assert box.get(0) == ("control", "stop")  # priorities as before
+    kept = [box.get(0)[1] for _ in range(8)]
+    assert kept[0] == 0 and kept[-1] == 99 and kept == sorted(kept) and box.get(0.01) is None
+    gaps = np.diff(kept)
+    assert gaps.max() <= 2.5 * 99 / 7 and gaps.min() >= 0.4 * 99 / 7, kept  # even to within a factor ~2.5
+    assert box.counters.get("dropped_frames") == 92
+    # the worker taking items while others arrive keeps items and arrival numbers in step
+    box = C.Inbox({"frames": 4}, thin=("frames",))
+    served = []
+    for i in range(40):
+        box.put("frames", i)
+        if i % 3 == 0:
+            served.append(box.get(0)[1])
+    rest = [box.get(0)[1] for _ in range(box.size("frames"))]
+    assert served + rest == sorted(served + rest) and rest[-1] == 39 and 1 <= len(rest) <= 4
+    assert box.counters.get("dropped_frames") == 40 - len(served) - len(rest)
 
 
 def test_core_helpers_camera_gate_rigid_pose_names_and_stop_kind(dataset):
@@ -244,7 +283,7 @@ def test_tracker_core_waits_for_the_map_then_answers_every_frame(dataset):
     from fmapping.field import FieldConfig, build_field
     from services.tracker import TrackerCore, TrackerServiceOptions
 
-    core = TrackerCore(opts=TrackerServiceOptions(use_depth=True))
+    core = TrackerCore(opts=TrackerServiceOptions(frontend="map", use_depth=True))
     for i in range(6):
         assert core.handle("frames", P.encode(P.frame_from_dataset(dataset[i], seq=i))) == []  # no map: wait
     assert core.ack == -1 and len(core.waiting) == 6
@@ -278,9 +317,9 @@ def test_tracker_core_answers_lost_when_the_map_is_empty(dataset):
     import dataclasses
 
     from fmapping.field import FieldConfig, build_field
-    from services.tracker import TrackerCore
+    from services.tracker import TrackerCore, TrackerServiceOptions
 
-    core = TrackerCore()  # reference depth rendered from the map, which is empty (clear field)
+    core = TrackerCore(opts=TrackerServiceOptions(frontend="map"))  # reference depth rendered from the map, which is empty (clear field)
     fcfg = FieldConfig(resolution=8, density_components=2, appearance_components=2, app_features=4, hidden=4)
     field = build_field(fcfg, np.array([[-3.0, -3, -1], [3, 3, 4]]))
     snap = P.FieldSnapshot(version=1, kind="cp", config={"field": dataclasses.asdict(fcfg), "n_coarse": 8, "n_fine": 0},
@@ -300,14 +339,14 @@ def test_restarted_tracker_resyncs_from_the_latest_snapshot(dataset, tmp_path):
     snapshot (map/latest) and new frames: it renders its first reference from the map at the
     snapshot's frame pose and answers every new frame at once (tracked or lost)."""
     from services.mapper import MapperCore, MapperServiceOptions
-    from services.tracker import TrackerCore
+    from services.tracker import TrackerCore, TrackerServiceOptions
 
     mapper = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", points_interval=1e9, checkpoint_every=0))
     feed(mapper, dataset, range(6))
     snap = P.decode(mapper.latest_field_bytes, P.FieldSnapshot)
     assert snap.frame_seq == 5 and snap.frame_c2w is not None
     np.testing.assert_allclose(snap.frame_c2w, dataset[5].c2w, atol=1e-6)  # GT poses are kept as given
-    core = TrackerCore()
+    core = TrackerCore(opts=TrackerServiceOptions(frontend="map"))
     core.handle("field", mapper.latest_field_bytes)
     outs = []
     for i in range(6, 9):
@@ -315,6 +354,99 @@ def test_restarted_tracker_resyncs_from_the_latest_snapshot(dataset, tmp_path):
     assert sorted(m.seq for _, m in outs) == [6, 7, 8] and core.ack == 8 and not core.waiting
     c = core.counters.snapshot()
     assert c.get("references_rendered", 0) + c.get("reference_failures", 0) >= 1
+
+
+def _feed_mono(core, ds, anchors: bool):
+    """Frames of ``ds`` into a mono TrackerCore (each preceded by its GT pose on the anchor
+    channel when ``anchors``, as io play sends them); returns {seq: Pose} and {seq: frame
+    index whose arrival answered it}."""
+    poses, answered_at = {}, {}
+    for i in range(len(ds)):
+        f = ds[i]
+        if anchors:
+            core.handle("poses", P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
+        for _, m in core.handle("frames", P.encode(P.frame_from_dataset(f, seq=i))):
+            poses[m.seq], answered_at[m.seq] = m, i
+    return poses, answered_at
+
+
+def test_mono_tracker_core_is_the_library_front_end_anchored_by_gt(room320):
+    """The default (mono) tracker answers every frame from the first one, without a map: the
+    bootstrap frames all at once when the two-view bootstrap succeeds, then each frame as it
+    comes. Its poses are exactly those of fmapping's MonoFrontend on the same frames with the
+    same anchor (frame 0 at its GT pose, GT baseline length), and close to the GT."""
+    from fmapping.datasets import open_dataset
+    from fmapping.metrics import ate
+    from fmapping.tracking.frontend import TrackerConfig
+    from fmapping.tracking.mono import MonoFrontend
+    from services.tracker import TrackerCore
+
+    ds = open_dataset(room320)
+    n = len(ds)
+    core = TrackerCore()
+    poses, answered_at = _feed_mono(core, ds, anchors=True)
+    assert sorted(poses) == list(range(n)) and core.ack == n - 1 and not core.waiting
+    boot = core.counters.get("bootstrap_frame")
+    assert 1 <= boot < 20 and all(answered_at[i] == boot for i in range(boot + 1))
+    assert all(answered_at[i] == i for i in range(boot + 1, n))
+    assert core.counters.get("bootstrap_anchored") == 1
+    P.decode(P.encode(P.Status(service="tracker", counters=core.counters.snapshot())))  # a Status carries them
+    assert all(m.source == "tracker" and m.quality > 0 for m in poses.values())
+    # the reference: the library front end driven directly
+    g = [ds[i].c2w for i in range(n)]
+    fe = MonoFrontend(ds.camera, TrackerConfig())
+    ref, i = None, 0
+    while ref is None:
+        ref = fe.bootstrap(i, ds[i].rgb, g[0], lambda k: float(np.linalg.norm(g[k][:3, 3] - g[0][:3, 3])))
+        i += 1
+    for k in range(i, n):
+        ref[k] = fe.track(k, ds[k].rgb).c2w
+    for k in range(n):
+        np.testing.assert_allclose(poses[k].c2w, ref[k], atol=1e-9, err_msg=f"frame {k}")
+    np.testing.assert_allclose(poses[0].c2w, g[0], atol=1e-12)
+    est = np.stack([poses[k].c2w for k in range(n)])
+    # measured: 1.65 cm unaligned (GT world frame and scale), 0.56 cm after Sim3
+    assert ate(est, np.stack(g), "none")["rmse_m"] < 0.04
+    assert ate(est, np.stack(g), "sim3")["rmse_m"] < 0.015
+
+
+def test_mono_tracker_core_without_anchors_uses_the_unit_depth_convention(room320):
+    from fmapping.datasets import open_dataset
+    from fmapping.metrics import ate
+    from services.tracker import TrackerCore
+
+    ds = open_dataset(room320)
+    core = TrackerCore()
+    poses, _ = _feed_mono(core, ds, anchors=False)
+    assert sorted(poses) == list(range(len(ds))) and core.counters.get("bootstrap_anchored") == 0
+    np.testing.assert_allclose(poses[0].c2w, np.eye(4), atol=1e-12)  # no world frame given: frame 0 is it
+    est = np.stack([poses[k].c2w for k in range(len(ds))])
+    r = ate(est, np.stack([ds[k].c2w for k in range(len(ds))]), "sim3")
+    assert r["rmse_m"] < 0.015 and abs(r["scale"] - 1.0) > 0.05  # right up to scale, and not metric
+
+
+def test_mono_tracker_core_restarts_a_failed_bootstrap_and_answers_its_frames(room320):
+    """A camera that does not move gives the bootstrap no parallax: after init_max_frames the
+    bootstrap gives up, its frames are answered as unusable (quality 0) and it starts again;
+    once the camera moves, tracking starts."""
+    from fmapping.datasets import open_dataset
+    from fmapping.tracking.mono import MonoConfig
+    from services.tracker import TrackerCore
+
+    ds = open_dataset(room320)
+    core = TrackerCore(mono_cfg=MonoConfig(init_max_frames=12))
+    still = P.frame_from_dataset(ds[0], seq=0)
+    outs = []
+    for s in range(13):  # the first frame, 13 times: the bootstrap gives up at the 13th
+        outs += core.handle("frames", P.encode(dataclasses.replace(still, seq=s, timestamp=s / 30)))
+    q = {m.seq: m.quality for _, m in outs}
+    assert sorted(q) == list(range(13)) and set(q.values()) == {0.0}
+    assert core.counters.get("bootstrap_failures") == 1 and core.ack == 12
+    for k in range(1, 26):  # now it moves: a new bootstrap from frame 13 on
+        outs += core.handle("frames", P.encode(P.frame_from_dataset(ds[k], seq=12 + k)))
+    q = {m.seq: m.quality for _, m in outs}
+    assert sorted(q) == list(range(38)) and all(q[s] > 0 for s in range(13, 38)), q
+    assert core.counters.get("bootstrap_failures") == 1
 
 
 # ---------------------------------------------------------------------------- services over zenoh
@@ -564,6 +696,40 @@ def test_fmapping_up_end_to_end(scene, tmp_path):
     assert len(pts) > 100 and ((pts > box[0] - 1e-3) & (pts < box[1] + 1e-3)).all()
 
 
+def test_fmapping_up_rgb_only_with_the_mono_tracker(room320, tmp_path):
+    """The RGB-only multi-process loop: the tracker process poses every frame from the first
+    (anchored by the GT poses play publishes), the mapper maps every frame with those poses."""
+    import json
+
+    import yaml
+
+    from fmapping.datasets import open_dataset
+    from fmapping.metrics import ate
+    from fmapping.trajectory import read_tum_trajectory
+
+    cfg = tmp_path / "up.yaml"
+    mapper = {**SMALL_MAPPER, "init_iters_per_round": 5, "final_global_iters": 0}  # the poses are under test here
+    cfg.write_text(yaml.safe_dump({"mapper": mapper, "launcher": {"timeout": 240, "threads": 1, "view": False}}))
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "fmapping.cli", "up", "--data", str(room320), "--poses", "tracker",
+                        "--out", str(out), "--config", str(cfg)], cwd=ROOT, env=subprocess_env(), capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    ds = open_dataset(room320)
+    gt = np.stack([ds[i].c2w for i in range(len(ds))])
+    _, tracked = read_tum_trajectory(out / "record" / "traj.txt")  # the tracker's poses as streamed
+    assert len(tracked) == len(ds)
+    np.testing.assert_allclose(tracked[0], gt[0], atol=1e-6)  # frame 0 at its GT pose (the anchor)
+    # measured in-process on the same frames (test_mono_tracker_core_is_the_library_front_end_anchored_by_gt):
+    # 1.65 cm unaligned
+    assert ate(tracked, gt, "none")["rmse_m"] < 0.04
+    _, mapped = read_tum_trajectory(out / "traj.txt")
+    assert len(mapped) == len(ds)  # every frame mapped, none waited in vain for its pose
+    status = json.loads((out / "up.json").read_text())["status"]
+    assert status["mapper"]["counters"].get("frames_without_pose", 0) == 0, status["mapper"]
+    assert status["tracker"]["counters"].get("frames_lost", 0) == 0, status["tracker"]
+
+
 def test_docker_compose_config_validates():
     tool = shutil.which("docker-compose")
     if tool is None:
@@ -575,7 +741,7 @@ def test_docker_compose_config_validates():
 
 def test_tracker_seen_by_marks_points_in_a_mapped_frustum():
     from fmapping.camera import PinholeCamera
-    from services.tracker import seen_by
+    from fmapping.tracking.mapview import seen_by
 
     cam = PinholeCamera(50.0, 50.0, 31.5, 23.5, 64, 48)
     right = np.eye(4)
@@ -601,7 +767,7 @@ def test_tracker_core_keeps_tracking_when_snapshots_arrive_late(dataset):
     mapper = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", checkpoint_every=0))
     n, lag = len(dataset), 4
     mapped = [[(ch, P.encode(m)) for ch, m in feed(mapper, dataset, [i]) if ch in ("field", "poses")] for i in range(n)]
-    core = TrackerCore(opts=TrackerServiceOptions(use_depth=True))  # the 64x48 test map is too coarse to render depth
+    core = TrackerCore(opts=TrackerServiceOptions(frontend="map", use_depth=True))  # the 64x48 test map is too coarse to render depth
     got, pred_err = {}, []
     for i in range(n + lag):
         outs = core.handle("frames", gt_messages(dataset, i)[1]) if i < n else []

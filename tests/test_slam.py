@@ -23,15 +23,10 @@ mapper:
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    from fmapping.synthetic import generate_scene
-
-    root = tmp_path_factory.mktemp("slam") / "syn"
-    generate_scene(root, seed=0, frames=40, size=(320, 240), supersample=1, max_cloud_points=20000,
-                   mesh_spacing=0.2)
-    cfg = root.parent / "tiny.yaml"
+def scene(room320, tmp_path_factory):
+    cfg = tmp_path_factory.mktemp("slam") / "tiny.yaml"
     cfg.write_text(TINY)
-    return root, cfg
+    return room320, cfg
 
 
 def _args(data, out, cfg, **kw):

@@ -6,6 +6,13 @@ deterministic stratified pass, then inverse-CDF samples from its weights, then
 :func:`fmapping.render.render_rays`. Depths are camera z (z-normalised rays, see
 :mod:`fmapping.camera`), normalised by the accumulated opacity; pixels whose
 opacity is below ``min_acc`` have no depth (NaN).
+
+A factorised field is only constrained where mapped frames looked: elsewhere its
+factors extend structure into unseen space and it renders confident but meaningless
+depth, which makes a tracker drift without any sign of trouble (the warp explains the
+image because the depth is wrong). With ``seen_poses`` (the mapped frames' poses),
+depth is kept only where the rendered surface point lies in one of their frusta
+(:func:`seen_by`).
 """
 from __future__ import annotations
 
@@ -27,23 +34,53 @@ class MapViewConfig:
     n_fine: int = 16
     min_acc: float = 0.7  # opacity below which a pixel has no depth
     chunk: int = 16384
+    seen_only: bool = True  # from_mapper: depth only where a mapped frame looked (see seen_by)
+
+
+def seen_by(points: np.ndarray, c2ws: list, camera, near: float, far: float, margin: float = 2.0) -> np.ndarray:
+    """Boolean (N,): which world points (N, 3) lie inside the viewing frustum (image with
+    ``margin`` pixels, depth in [near, far]) of at least one camera-to-world pose in ``c2ws``."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    seen = np.zeros(len(pts), bool)
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+    for c2w in c2ws:
+        t = np.asarray(c2w, np.float64)
+        pc = (pts - t[:3, 3]) @ t[:3, :3]  # world -> camera: R^T (X - t)
+        z = pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = fx * pc[:, 0] / z + cx, fy * pc[:, 1] / z + cy
+        seen |= (z >= near) & (z <= far) & (u >= margin - 0.5) & (u <= camera.width - 0.5 - margin) \
+            & (v >= margin - 0.5) & (v <= camera.height - 0.5 - margin)
+        if seen.all():
+            break
+    return seen
+
+
+def backproject(camera, c2w: np.ndarray, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """World points (N, 3) of pixels ``uv`` (N, 2) at camera depth ``z`` (N,) of a camera at ``c2w``."""
+    pc = np.stack([(uv[:, 0] - camera.cx) / camera.fx * z, (uv[:, 1] - camera.cy) / camera.fy * z, z], -1)
+    t = np.asarray(c2w, np.float64)
+    return pc @ t[:3, :3].T + t[:3, 3]
 
 
 class MapView:
     def __init__(self, field, aabb: Tensor, camera: PinholeCamera, near: float, far: float,
-                 cfg: Optional[MapViewConfig] = None):
+                 cfg: Optional[MapViewConfig] = None, seen_poses: Optional[list] = None):
         self.field = field
         self.aabb = torch.as_tensor(aabb, dtype=torch.float32)
         self.camera = camera
         self.near = float(near)
         self.far = float(far)
         self.cfg = cfg or MapViewConfig()
+        self.seen_poses = None if seen_poses is None else [np.asarray(p, np.float64) for p in seen_poses]
 
     @classmethod
     def from_mapper(cls, mapper, cfg: Optional[MapViewConfig] = None) -> "MapView":
         if mapper.field is None or mapper.aabb is None:
             raise RuntimeError("MapView: the mapper has no map yet (not initialised)")
-        return cls(mapper.field, mapper.aabb, mapper.camera, mapper.cfg.near, mapper.cfg.far, cfg)
+        cfg = cfg or MapViewConfig()
+        seen = list(mapper.frame_poses().values()) if cfg.seen_only else None
+        return cls(mapper.field, mapper.aabb, mapper.camera, mapper.cfg.near, mapper.cfg.far, cfg, seen)
 
     def _samples(self, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
         aabb = self.aabb.to(o.device, o.dtype)
@@ -80,7 +117,12 @@ class MapView:
             out.append(torch.where(good, dep, torch.full_like(dep, float("nan"))))
         if not out:
             return np.zeros(0)
-        return torch.cat(out).double().cpu().numpy()
+        z = torch.cat(out).double().cpu().numpy()
+        if self.seen_poses is not None:
+            ok = np.flatnonzero(np.isfinite(z))
+            pts = backproject(self.camera, c2w, np.asarray(uv, np.float64)[ok], z[ok])
+            z[ok[~seen_by(pts, self.seen_poses, self.camera, self.near, self.far)]] = np.nan
+        return z
 
     def depth_fn(self, c2w: np.ndarray):
         """A callable ``uv -> depth`` for :func:`fmapping.tracking.direct.make_reference`."""

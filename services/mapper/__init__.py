@@ -11,10 +11,12 @@ frames to the mapper in order and returns the messages to publish:
 * a :class:`~fmapping.protocol.PointsSnapshot` at most every ``points_interval`` seconds
   (and at the end).
 
-Pose sources: ``gt`` / ``external`` / ``tracker`` (key ``poses/<source>``). Before the map
-is initialised a frame may enter without a pose when ``unposed_init`` is on (the mapper
-guesses and optimises init poses; the default for ``tracker``, which cannot track before
-there is a map). A frame waits for its pose; when more than ``max_pending`` frames wait,
+Pose sources: ``gt`` / ``external`` / ``tracker`` (key ``poses/<source>``). Given poses are
+trusted, as by ``fmapping map`` and ``fmapping slam`` (``optimize_init_poses`` off). Before the
+map is initialised a frame may enter without a pose when ``unposed_init`` is on (the mapper
+then guesses and optimises its init poses, the first ``anchor_frames`` fixed by the anchor
+source): that is for the tracker's ``map`` front end, which cannot track before there is a
+map; the default ``mono`` tracker poses every frame itself. A frame waits for its pose; when more than ``max_pending`` frames wait,
 the oldest is dropped (``frames_without_pose``), and so is a frame whose pose has not come
 within ``pose_timeout`` seconds (a dead or restarted producer). The acknowledgement (``ack``) is the
 newest frame number consumed (integrated or dropped): the player's flow control waits on it.
@@ -55,8 +57,8 @@ class MapperServiceOptions:
     checkpoint_every: int = 1  # windows between checkpoints (0 = never)
     resume: bool = True
     keep_checkpoint: bool = False  # keep it after a completed run
-    unposed_init: Optional[bool] = None  # default: True for the tracker source
-    anchor_source: Optional[str] = None  # poses fixing the first frames (scale) before init; default gt for tracker
+    unposed_init: Optional[bool] = None  # frames may enter init without a pose (default: no)
+    anchor_source: Optional[str] = None  # poses fixing the first frames (scale) of an unposed init; default gt
     anchor_frames: int = 2
     points_interval: float = 2.0  # seconds between PointsSnapshots
     max_points: int = 100_000  # per PointsSnapshot
@@ -74,9 +76,9 @@ class MapperServiceOptions:
         if self.max_pending < 1 or self.max_poses < 1:
             raise ValueError("max_pending and max_poses must be >= 1")
         if self.unposed_init is None:
-            self.unposed_init = self.pose_source == "tracker"
+            self.unposed_init = False
         if self.anchor_source is None:
-            self.anchor_source = "gt" if self.pose_source == "tracker" else ""
+            self.anchor_source = "gt" if self.unposed_init else ""
         if self.anchor_source == self.pose_source:
             self.anchor_source = ""
         return self
@@ -97,8 +99,10 @@ class MapperCore(ServiceCore):
         super().__init__(counters, on_bad_input)
         self.clock = clock  # for the pose timeout (injectable in tests)
         self._arrived: dict[int, float] = {}
-        self.cfg = cfg if cfg is not None else MapperConfig()
         self.opts = (opts or MapperServiceOptions()).validate()
+        self.cfg = cfg if cfg is not None else MapperConfig()
+        if not self.opts.unposed_init:  # every frame comes with its pose: trusted, as fmapping map / slam do
+            self.cfg = dataclasses.replace(self.cfg, optimize_init_poses=False)
         self.device = device
         self.mapper = None
         self.frames: "OrderedDict[int, P.Frame]" = OrderedDict()

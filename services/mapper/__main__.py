@@ -33,12 +33,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--points-interval", type=float, default=2.0, help="min seconds between map point snapshots")
     p.add_argument("--max-points", type=int, default=100_000, help="points per snapshot")
     p.add_argument("--unposed-init", choices=["auto", "yes", "no"], default="auto",
-                   help="accept frames without a pose before the map exists (auto: only for --poses tracker)")
+                   help="accept frames without a pose before the map exists; the mapper then optimises its init "
+                        "poses (auto: no; yes for the tracker's map front end, which tracks only once a map exists)")
     p.add_argument("--pose-timeout", type=float, default=30.0,
                    help="seconds a frame waits for its pose before it is skipped (0 = forever)")
     p.add_argument("--anchor", default=None,
-                   help="pose source fixing the first --anchor-frames frames (scale) before the map exists "
-                        "(default: gt with --poses tracker, none otherwise; '' for none)")
+                   help="pose source fixing the first --anchor-frames frames (scale) of an unposed init "
+                        "(default: gt with --unposed-init yes, none otherwise; '' for none)")
     p.add_argument("--anchor-frames", type=int, default=2)
     p.add_argument("--no-mesh", action="store_true")
     p.add_argument("--mesh-resolution", type=int, default=96, help="marching-cubes grid per axis")
@@ -64,8 +65,9 @@ def main(argv=None, session=None, keys=None) -> int:
         mesh_resolution=args.mesh_resolution,
         anchor_source=args.anchor, anchor_frames=args.anchor_frames, pose_timeout=args.pose_timeout,
     ).validate()
+    # frames: thinned when full (a long update then leaves an evenly subsampled backlog, not the newest only)
     with Service("mapper", args, capacities={"control": 64, "poses": 8192, "frames": 32}, session=session,
-                 keys=keys) as svc:
+                 keys=keys, thin=("frames",)) as svc:
         return serve(svc, cfg, opts, args)
 
 

@@ -1,25 +1,39 @@
 """Tracker service core (zenoh-free): frames + field snapshots in, ``Pose(source="tracker")`` out.
 
-:class:`TrackerCore` wraps :class:`fmapping.tracking.frontend.DirectTracker` (direct image
-alignment against a keyframe whose depth is rendered through the latest map).
+Two front ends (``TrackerServiceOptions.frontend``):
 
-Protocol with the mapper (``services.mapper`` in ``--poses tracker`` mode):
+* ``mono`` (default; the same tracking as ``fmapping slam``): a
+  :class:`fmapping.tracking.mono.MonoFrontend` runs from the first frame on RGB alone, so
+  no frame waits for a map. Frames are held until its two-view bootstrap succeeds; then
+  every held frame gets its pose at once and every later frame is tracked as it comes.
+  The world frame and the metric scale come from the *anchor* poses (``poses/gt`` when the
+  player publishes them): frame 0 is put at its anchor pose and the bootstrap baseline
+  takes the anchor's length (the DIM-SLAM convention); without anchors frame 0 is the
+  identity and the median bootstrap depth is the unit (evaluate with Sim3). When a field
+  snapshot is held, new keyframes add depth rendered from it (only where the mapped frames
+  looked, and only when it agrees with the landmarks). A bootstrap that fails (no parallax
+  within ``MonoConfig.init_max_frames`` frames) restarts at the next frame; the frames it
+  held are answered with ``quality = 0``. The mapper maps with these poses as given.
+* ``map`` (the paper-style loop): direct alignment against keyframes whose depth is
+  rendered from the mapper's field. Protocol with the mapper (``services.mapper
+  --poses tracker --unposed-init yes``):
 
-* Before the first FieldSnapshot there is no map to track against: frames wait in a
-  bounded buffer (the mapper builds its init stage without tracker poses).
-* The mapper publishes a FieldSnapshot (``frame_seq`` = newest frame it integrated)
-  after every update, then the refined poses of its window frames as
-  ``Pose(source="mapper")``. Frames up to that newest mapped frame take the mapper's
-  pose (republished as the tracker's, so ``traj`` covers every frame); the reference
-  keyframe is re-made at the newest mapped frame with depth rendered from the new map.
-* Later frames are tracked. ``quality`` is the inlier ratio; a lost frame is published
-  with the motion-model prediction and ``quality = 0`` (the mapper skips such frames).
-  When the tracker asks for a keyframe, the current frame becomes the reference
-  (tracked pose, depth rendered from the current map).
+  * Before the first FieldSnapshot there is no map to track against: frames wait in a
+    bounded buffer (the mapper builds its init stage without tracker poses).
+  * The mapper publishes a FieldSnapshot (``frame_seq`` = newest frame it integrated)
+    after every update, then the refined poses of its window frames as
+    ``Pose(source="mapper")``. Frames up to that newest mapped frame take the mapper's
+    pose (republished as the tracker's, so ``traj`` covers every frame); the reference
+    keyframe is re-made at the newest mapped frame with depth rendered from the new map.
+  * Later frames are tracked. When the tracker asks for a keyframe, the current frame
+    becomes the reference (tracked pose, depth rendered from the current map).
 
-A late (or restarted) tracker asks the mapper's ``map/latest`` queryable for the
-newest snapshot (the shell does it) and continues from there: its first reference is a
-view rendered from the map at the snapshot's ``frame_c2w`` (it never saw that frame). The acknowledgement
+  A late (or restarted) tracker asks the mapper's ``map/latest`` queryable for the
+  newest snapshot (the shell does it) and continues from there: its first reference is a
+  view rendered from the map at the snapshot's ``frame_c2w`` (it never saw that frame).
+
+In both, ``quality`` is the inlier ratio; a lost frame is published with the motion-model
+prediction and ``quality = 0`` (the mapper skips such frames). The acknowledgement
 ``ack`` is the newest frame number answered with a pose (or dropped).
 """
 from __future__ import annotations
@@ -48,68 +62,14 @@ class TrackerServiceOptions:
     min_acc: float = 0.5  # rendered opacity below which a pixel has no depth
     render_chunk: int = 4096
     seen_only: bool = True  # rendered reference depth only where a mapped frame looked (see seen_by)
+    frontend: str = "mono"  # "mono" (RGB-only front end from frame 0) | "map" (track against the mapper's field)
+    anchor_source: str = "gt"  # poses fixing world frame and scale of the mono bootstrap ("" = none)
+    anchor_wait: int = 2  # mono bootstrap: frames a frame waits for its anchor pose once anchors flow
 
-
-def render_depth(field, camera, c2w: np.ndarray, uv: np.ndarray, near: float, far: float, n_coarse: int,
-                 n_fine: int, min_acc: float = 0.5, chunk: int = 4096) -> np.ndarray:
-    """Depth (N,) at pixels ``uv`` (N, 2) of a camera at ``c2w`` rendered through ``field``:
-    stratified bin centres + deterministic inverse-CDF samples, opacity-normalised; NaN where
-    the accumulated opacity is below ``min_acc`` (empty map)."""
-    import torch
-
-    from fmapping.render import render_weights
-    from fmapping.sampling import ray_aabb, sample_pdf, stratified
-
-    dev, dtype = field.device, field.dtype
-    pose = torch.as_tensor(np.asarray(c2w, np.float64))
-    o_all, d_all = camera.rays(pose, torch.as_tensor(np.asarray(uv, np.float64)))
-    out = []
-    with torch.no_grad():
-        for s in range(0, len(o_all), chunk):
-            o, d = o_all[s:s + chunk].to(dev, dtype), d_all[s:s + chunk].to(dev, dtype)
-            tn, tf, hit = ray_aabb(o, d, field.aabb, near_min=near)
-            tf = torch.minimum(tf, torch.full_like(tf, far))
-            tf = torch.maximum(tf, tn + 1e-4)
-            t = stratified(tn, tf, n_coarse, perturb=False)
-            if n_fine > 0:
-                w = render_weights(field, o, d, t).weights
-                t = torch.sort(torch.cat([t, sample_pdf(t, w, n_fine, deterministic=True)], -1), -1).values
-            r = render_weights(field, o, d, t)
-            z = r.depth / r.acc.clamp_min(1e-6)
-            z = torch.where((r.acc >= min_acc) & hit, z, torch.full_like(z, float("nan")))
-            out.append(z.double().cpu())
-    return torch.cat(out).numpy() if out else np.zeros(0)
-
-
-def seen_by(points: np.ndarray, c2ws: list, camera, near: float, far: float, margin: float = 2.0) -> np.ndarray:
-    """Boolean (N,): which world points (N, 3) lie inside the viewing frustum (image with
-    ``margin`` pixels, depth in [near, far]) of at least one camera-to-world pose in ``c2ws``.
-
-    A factorised field is only constrained where mapped frames looked: elsewhere it
-    renders confident but meaningless depth (its factors extend structure into unseen
-    space), which makes the tracker drift without any sign of trouble (the warp explains
-    the image because the depth is wrong)."""
-    pts = np.asarray(points, np.float64).reshape(-1, 3)
-    seen = np.zeros(len(pts), bool)
-    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
-    for c2w in c2ws:
-        t = np.asarray(c2w, np.float64)
-        pc = (pts - t[:3, 3]) @ t[:3, :3]  # world -> camera: R^T (X - t)
-        z = pc[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u, v = fx * pc[:, 0] / z + cx, fy * pc[:, 1] / z + cy
-        seen |= (z >= near) & (z <= far) & (u >= margin - 0.5) & (u <= camera.width - 0.5 - margin) \
-            & (v >= margin - 0.5) & (v <= camera.height - 0.5 - margin)
-        if seen.all():
-            break
-    return seen
-
-
-def _backproject(camera, c2w: np.ndarray, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """World points (N, 3) of pixels ``uv`` (N, 2) at camera depth ``z`` (N,) of a camera at ``c2w``."""
-    pc = np.stack([(uv[:, 0] - camera.cx) / camera.fx * z, (uv[:, 1] - camera.cy) / camera.fy * z, z], -1)
-    t = np.asarray(c2w, np.float64)
-    return pc @ t[:3, :3].T + t[:3, 3]
+    def validate(self) -> "TrackerServiceOptions":
+        if self.frontend not in ("mono", "map"):
+            raise ValueError(f"tracker frontend must be 'mono' or 'map', got {self.frontend!r}")
+        return self
 
 
 Output = tuple[str, Any]
@@ -120,12 +80,19 @@ class TrackerCore(ServiceCore):
 
     CHANNELS = {"frames": P.Frame, "field": P.FieldSnapshot, "poses": P.Pose, "control": P.Control}
 
-    def __init__(self, cfg=None, opts: Optional[TrackerServiceOptions] = None, counters=None, on_bad_input=None):
+    def __init__(self, cfg=None, opts: Optional[TrackerServiceOptions] = None, counters=None, on_bad_input=None,
+                 mono_cfg=None):
         from fmapping.tracking.frontend import TrackerConfig
 
         super().__init__(counters, on_bad_input)
         self.cfg = cfg if cfg is not None else TrackerConfig()
-        self.opts = opts or TrackerServiceOptions()
+        self.mono_cfg = mono_cfg  # MonoConfig of the mono front end (None: its defaults)
+        self.opts = (opts or TrackerServiceOptions()).validate()
+        self.mono = None  # MonoFrontend (frontend "mono")
+        self.anchors: dict[int, np.ndarray] = {}  # anchor poses of the frames the bootstrap may still use
+        self._boot_stamps: dict[int, float] = {}  # frames held by the bootstrap -> timestamp
+        self._c2w0: Optional[np.ndarray] = None  # world pose of the bootstrap's first frame
+        self._first_anchored: Optional[np.ndarray] = None  # its anchor pose (None: no anchor)
         self.camera = None
         self.tracker = None
         self.field = None
@@ -249,6 +216,8 @@ class TrackerCore(ServiceCore):
         return field, rc, cam
 
     def on_pose(self, p: P.Pose) -> list[Output]:
+        if self.opts.frontend == "mono" and p.source and p.source == self.opts.anchor_source:
+            return self._on_anchor(p)
         if p.source != "mapper":
             return []
         self.mapper_poses[p.seq] = np.array(p.c2w)
@@ -272,6 +241,10 @@ class TrackerCore(ServiceCore):
         self.ref_seq = -1
         self._ref_target = None
         self._motion_seq = -1
+        self.mono = None
+        self.anchors.clear()
+        self._boot_stamps.clear()
+        self._c2w0 = None
         self.counters.inc("resets")
 
     def _set_camera(self, cam: dict) -> None:
@@ -281,6 +254,77 @@ class TrackerCore(ServiceCore):
         self.camera_dict = dict(cam)
         self.camera = PinholeCamera.from_dict(cam)
         self.tracker = DirectTracker(self.camera, self.cfg)
+        if self.opts.frontend == "mono":
+            self._new_mono()
+
+    # ------------------------------------------------------------ mono front end
+    def _new_mono(self) -> None:
+        from fmapping.tracking.mono import MonoFrontend
+
+        self.mono = MonoFrontend(self.camera, self.cfg, self.mono_cfg)
+        self._c2w0 = None
+        self._boot_stamps.clear()
+
+    def _on_anchor(self, p: P.Pose) -> list[Output]:
+        if (self.mono is not None and self.mono.initialized) or p.seq <= self.last_seq:
+            return []
+        self.anchors[p.seq] = np.array(p.c2w)
+        while len(self.anchors) > self.opts.max_poses:
+            self.anchors.pop(min(self.anchors))
+        self.counters.inc("anchor_poses")
+        return self._advance()
+
+    def _anchor_baseline(self, seq: int) -> Optional[float]:
+        a = self.anchors.get(seq)
+        if a is None or self._c2w0 is None or self._first_anchored is None:
+            return None
+        return float(np.linalg.norm(a[:3, 3] - self._first_anchored[:3, 3]))
+
+    def _extra_depth(self):
+        """Depth rendered from the map we hold, for new keyframes (None before the first snapshot)."""
+        if self.field is None or self.camera is None:
+            return None
+        return self._map_view().depth_fn
+
+    def _advance_mono(self) -> list[Output]:
+        out: list[Output] = []
+        fe = self.mono
+        while self.waiting:
+            seq, f = next(iter(self.waiting.items()))
+            if not fe.initialized:
+                if self.anchors and seq not in self.anchors and len(self.waiting) <= self.opts.anchor_wait:
+                    break  # anchors flow: this frame's is on its way
+                self.waiting.popitem(last=False)
+                if self._c2w0 is None:
+                    self._first_anchored = self.anchors.get(seq)
+                    self._c2w0 = self._first_anchored if self._first_anchored is not None else np.eye(4)
+                self._boot_stamps[seq] = f.timestamp
+                t0 = time.perf_counter()
+                poses = fe.bootstrap(seq, np.asarray(f.rgb), self._c2w0, self._anchor_baseline)
+                self.counters.set("track_ms", round((time.perf_counter() - t0) * 1e3, 2))
+                if fe.failed:
+                    self.counters.inc("bootstrap_failures")
+                    self.last_error = f"monocular bootstrap failed at frame {seq}; restarting at the next frame"
+                    for s in sorted(self._boot_stamps):
+                        out.append(self._skip(s, self._boot_stamps[s]))
+                    self._new_mono()
+                    fe = self.mono
+                    continue
+                if poses is not None:
+                    self.counters.set("bootstrap_frame", seq)
+                    self.counters.set("bootstrap_anchored", int(fe.init_info.get("scale_from") == "anchor"))
+                    for s in sorted(poses):
+                        self.own_poses[s] = np.array(poses[s])
+                        self.counters.inc("frames_tracked")
+                        out += self._emit(s, self._boot_stamps.get(s, 0.0), poses[s], 1.0)
+                    self._boot_stamps.clear()
+                    self.anchors.clear()
+                continue
+            self.waiting.popitem(last=False)
+            res = fe.track(seq, np.asarray(f.rgb), extra_depth=self._extra_depth())
+            out += self._answer(f, res)
+        self.counters.set("waiting_frames", len(self.waiting))
+        return out
 
     # ------------------------------------------------------------ tracking
     def _pose_of(self, seq: int) -> Optional[np.ndarray]:
@@ -338,6 +382,18 @@ class TrackerCore(ServiceCore):
         depth = np.where(r["acc"].cpu().numpy() >= self.opts.min_acc, r["depth_normalized"].cpu().numpy(), 0.0)
         return rgb, depth.astype(np.float32)
 
+    def _map_view(self):
+        """Depth of the map we hold (only where the frames integrated into it looked, see
+        :class:`fmapping.tracking.mapview.MapView`)."""
+        from fmapping.tracking.mapview import MapView, MapViewConfig
+
+        rc, o = self.render_cfg, self.opts
+        cfg = MapViewConfig(n_coarse=int(rc["n_coarse"]), n_fine=int(rc["n_fine"]), min_acc=o.min_acc,
+                            chunk=o.render_chunk, seen_only=o.seen_only)
+        mapped = self._mapped_poses()
+        return MapView(self.field, self.field.aabb, self.camera, rc["near"], rc["far"], cfg,
+                       mapped if (o.seen_only and mapped) else None)
+
     def _mapped_poses(self) -> list:
         """Poses of the frames integrated into the map we hold (the mapper's, up to ``map_seq``)."""
         out = [c for s, c in self.mapper_poses.items() if s <= self.map_seq]
@@ -359,20 +415,7 @@ class TrackerCore(ServiceCore):
             if self.opts.use_depth and f.depth is not None:
                 depth = np.asarray(f.depth)
             else:
-                rc = self.render_cfg
-
-                mapped = self._mapped_poses()
-
-                def depth(uv: np.ndarray) -> np.ndarray:
-                    z = render_depth(self.field, self.camera, c2w, uv, rc["near"], rc["far"], int(rc["n_coarse"]),
-                                     int(rc["n_fine"]), self.opts.min_acc, self.opts.render_chunk)
-                    if self.opts.seen_only and mapped:
-                        ok = np.isfinite(z)
-                        pts = _backproject(self.camera, c2w, np.asarray(uv, np.float64)[ok], z[ok])
-                        keep = seen_by(pts, mapped, self.camera, rc["near"], rc["far"])
-                        z = z.copy()
-                        z[np.flatnonzero(ok)[~keep]] = np.nan
-                    return z
+                depth = self._map_view().depth_fn(c2w)
         try:
             self.tracker.set_reference(rgb, depth, c2w, frame_index=seq)
         except ValueError as e:
@@ -407,6 +450,10 @@ class TrackerCore(ServiceCore):
         return self._skip(seq, f.timestamp)
 
     def _advance(self) -> list[Output]:
+        if self.opts.frontend == "mono":
+            if self.mono is None:
+                return []  # no frame yet (the first one fixes the camera)
+            return self._advance_mono()
         out: list[Output] = []
         while self.waiting:
             seq, f = next(iter(self.waiting.items()))
@@ -448,6 +495,14 @@ class TrackerCore(ServiceCore):
 
     def _track(self, f: P.Frame) -> list[Output]:
         res = self.tracker.track(np.asarray(f.rgb))
+        out = self._answer(f, res)
+        if not res.lost and res.need_keyframe:
+            self.counters.inc("keyframe_requests")
+            self._make_reference(f.seq)
+        return out
+
+    def _answer(self, f: P.Frame, res) -> list[Output]:
+        """Count a tracking result and publish its pose (``quality = 0`` when lost)."""
         self.counters.inc("frames_tracked")
         self.counters.set("track_ms", round(res.ms, 2))
         self.last_track = res.to_dict()
@@ -461,9 +516,6 @@ class TrackerCore(ServiceCore):
         self._motion_seq = f.seq
         while len(self.own_poses) > self.opts.max_poses:
             self.own_poses.pop(min(self.own_poses))
-        if res.need_keyframe:
-            self.counters.inc("keyframe_requests")
-            self._make_reference(f.seq)
         return self._emit(f.seq, f.timestamp, res.c2w, float(max(res.inlier_ratio, 1e-6)))
 
 

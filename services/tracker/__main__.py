@@ -1,7 +1,7 @@
 """``python -m services.tracker``: the tracking process (zenoh shell around :class:`services.tracker.TrackerCore`).
 
-Subscribes to ``frames``, ``map/field``, ``poses/mapper`` and ``control``; publishes
-``poses/tracker`` and ``status/tracker``. On start it asks ``map/latest`` for the newest
+Subscribes to ``frames``, ``map/field``, ``poses/mapper``, ``control`` and (front end
+``mono``) the anchor poses ``poses/<anchor>``; publishes ``poses/tracker`` and ``status/tracker``. On start it asks ``map/latest`` for the newest
 field snapshot (late joiners and restarts continue from the current map).
 """
 from __future__ import annotations
@@ -18,6 +18,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", default=None, help="YAML overrides of the tracker config (fmapping.tracking TrackerConfig)")
     p.add_argument("--use-depth", action="store_true", help="reference depth from the sensor when frames carry it")
     p.add_argument("--max-buffer", type=int, default=64, help="frames waiting for a map")
+    p.add_argument("--frontend", default="mono", choices=["mono", "map"],
+                   help="mono: RGB-only front end from frame 0 (as fmapping slam); map: track against the "
+                        "mapper's field (frames wait for the first map)")
+    p.add_argument("--anchor", default="gt",
+                   help="pose source fixing world frame and scale of the mono bootstrap ('' for none)")
     p.add_argument("--query-timeout", type=float, default=2.0, help="seconds to wait for map/latest at start")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch default)")
     return add_common_args(p)
@@ -28,7 +33,8 @@ def main(argv=None, session=None, keys=None) -> int:
     setup_logging(args.log_level, "tracker")
     set_torch_threads(args.threads)
     cfg = load_tracker_config(args.config)
-    opts = TrackerServiceOptions(max_buffer=args.max_buffer, use_depth=args.use_depth)
+    opts = TrackerServiceOptions(max_buffer=args.max_buffer, use_depth=args.use_depth, frontend=args.frontend,
+                                 anchor_source=args.anchor).validate()
     with Service("tracker", args, capacities={"control": 64, "field": 2, "poses": 8192, "frames": 64},
                  session=session, keys=keys) as svc:
         return serve(svc, cfg, opts, args)
@@ -40,6 +46,8 @@ def serve(svc: Service, cfg, opts: TrackerServiceOptions, args) -> int:
     svc.subscribe(keys.control, "control")
     svc.subscribe(keys.field, "field")
     svc.subscribe(keys.poses("mapper"), "poses")
+    if opts.frontend == "mono" and opts.anchor_source:
+        svc.subscribe(keys.poses(opts.anchor_source), "poses")
     svc.subscribe(keys.frames, "frames")
     svc.start()
     latest = query_latest(svc.session, keys.latest, timeout=args.query_timeout)
