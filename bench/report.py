@@ -222,9 +222,10 @@ def system_table(name: str) -> str:
 
 def build() -> str:
     stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    parts = [f"Machine: {machine()}. Report built {stamp} by `python bench/report.py` from `bench/results/`; "
-             "`make bench` re-runs everything. The CPU here is shared and its speed swings 3-4x: "
-             "timings are min / median.\n",
+    parts = [f"Report built {stamp} on {machine()} by `python bench/report.py` from `bench/results/`; "
+             "each table comes from its own run (the JSON files record when and, where they do, on which "
+             "machine: the 2-core machines differ from run to run). `make bench` re-runs everything. "
+             "The CPU is shared and its speed swings 3-4x: timings are min / median.\n",
              mapping_section(), tracking_section(), system_section(), transport_section(), field_section()]
     pngs = sorted(p.name for p in RESULTS.glob("*.png"))
     if pngs:
