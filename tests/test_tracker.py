@@ -428,3 +428,50 @@ def test_two_view_known_baseline_recovers_rotation_despite_outliers():
     assert dt < 1e-9 and dr < 0.05, (dt, dr)  # the centre is the given one; rotation from the tracks
     assert inl[15:].mean() > 0.95 and inl[:15].sum() <= 3
     assert two_view_known_baseline(cam, ua[:5], ub[:5], c2w_b[:3, 3]) is None
+
+
+def _run_mono(ds, cfg):
+    from fmapping.tracking.frontend import TrackerConfig
+    from fmapping.tracking.mono import MonoFrontend
+
+    g = [ds[i].c2w for i in range(len(ds))]
+    fe = MonoFrontend(ds.camera, TrackerConfig(), cfg)
+    i = 0
+    while not fe.initialized:
+        fe.bootstrap(i, ds[i].rgb, g[0], lambda k: float(np.linalg.norm(g[k][:3, 3] - g[0][:3, 3])))
+        i += 1
+    for k in range(i, len(ds)):
+        fe.track(k, ds[k].rgb)
+    return fe, g
+
+
+def test_mono_ba_with_fixed_older_observers_keeps_them_fixed_and_tracks(room320):
+    """ba_fixed_observers: keyframes older than the BA window that saw its landmarks join the
+    bundle adjustment, fixed. They must come out unmoved, and the 40-frame room stays tracked
+    as well as without them (measured: 0.29 cm Sim3 without, 0.27 cm with)."""
+    import dataclasses
+
+    from fmapping.datasets import open_dataset
+    from fmapping.metrics import ate
+    from fmapping.tracking import mono as M
+
+    ds = open_dataset(room320)
+    moved = []
+    real_ba = M.bundle_adjust
+
+    def spy(camera, poses, fixed, *a, **kw):  # records how far BA moved the poses it was told to fix
+        res = real_ba(camera, poses, fixed, *a, **kw)
+        moved.extend(float(np.abs(res.poses[j] - poses[j]).max()) for j in fixed)
+        return res
+
+    M.bundle_adjust = spy
+    try:
+        cfg = dataclasses.replace(M.MonoConfig(), window=3, ba_fixed_observers=5)  # a short window: old keyframes
+        fe, g = _run_mono(ds, cfg)
+    finally:
+        M.bundle_adjust = real_ba
+    assert any(b["fixed_observers"] > 0 for b in fe.ba_stats), fe.ba_stats
+    assert moved and max(moved) < 1e-9
+    p = fe.poses()
+    ks = sorted(p)
+    assert ate(np.stack([p[k] for k in ks]), np.stack([g[k] for k in ks]), "sim3")["rmse_m"] < 0.01
