@@ -7,7 +7,7 @@
     fmapping eval recon --pred P.ply --gt G.ply
     fmapping eval traj  --est E.txt --gt G.txt [--align sim3|se3|none]
     fmapping up    [--data DIR] [--poses tracker|gt] [--out OUT]
-    fmapping demo  [--out OUT]
+    fmapping demo  [--out OUT] [--poses tracker|gt]
 """
 from __future__ import annotations
 
@@ -86,10 +86,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=float, default=0.0, help="playback rate (0 = as fast as consumers keep up)")
     p.add_argument("--config", default=None)
 
-    p = sub.add_parser("demo", help="the main job on the embedded synthetic default, with metrics")
+    p = sub.add_parser("demo", help="the multi-process system on the embedded synthetic default, with metrics")
     p.add_argument("--out", default="out/demo")
     p.add_argument("--frames", type=int, default=200)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--poses", default="tracker", choices=["tracker", "gt"],
+                   help="tracker: RGB-only tracking (default); gt: map with the ground-truth poses")
+    p.add_argument("--config", default=None, help="fmapping up config (mapper / tracker / launcher sections)")
     return ap
 
 
@@ -147,7 +150,7 @@ def cmd_up(a) -> int:
 
 
 def cmd_demo(a) -> int:
-    from fmapping.pipeline import run_demo
+    from fmapping.launcher import run_demo
 
     return run_demo(a)
 

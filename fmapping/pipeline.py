@@ -1,4 +1,4 @@
-"""The mapping job behind ``fmapping map`` and ``fmapping demo``.
+"""The mapping job behind ``fmapping map``.
 
 ``run_map(args)`` opens a dataset, streams its frames with known poses (ground truth
 or a TUM trajectory file) into a :class:`fmapping.mapper.Mapper`, exports the map and
@@ -18,7 +18,6 @@ between ``near`` and ``far``.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import logging
@@ -273,34 +272,3 @@ def run_map(args) -> dict:
         "psnr_heldout": stats["psnr_heldout"],
     }
     return write_stats(out, stats, summary)
-
-
-def run_demo(args) -> int:
-    """Generate a synthetic scene in ``args.out/scene``, map it with GT poses, print the metrics."""
-    from fmapping.synthetic import generate_scene
-
-    out = Path(args.out)
-    scene_dir = out / "scene"
-    frames = int(getattr(args, "frames", 200))
-    seed = int(getattr(args, "seed", 0))
-    if not (scene_dir / "scene.json").is_file() or _scene_differs(scene_dir, seed, frames):
-        print(f"generating synthetic scene (seed {seed}, {frames} frames) in {scene_dir} ...", flush=True)
-        generate_scene(scene_dir, seed=seed, frames=frames, size=(320, 240))
-    margs = argparse.Namespace(data=str(scene_dir), poses="gt", out=str(out), config=getattr(args, "config", None),
-                               field=None, use_depth=False, device="auto", camera=None, max_frames=None)
-    stats = run_map(margs)
-    s = stats["summary"]
-    print(json.dumps(s, indent=2, default=json_default))
-    if "recon" in stats:
-        r = stats["recon"]
-        print(f"reconstruction vs visible GT: accuracy {r['accuracy_cm']:.2f} cm, completion {r['completion_cm']:.2f} cm, "
-              f"completion ratio (5 cm) {r['completion_ratio']:.1f} %")
-    return 0
-
-
-def _scene_differs(scene_dir: Path, seed: int, frames: int) -> bool:
-    try:
-        meta = json.loads((scene_dir / "scene.json").read_text())
-    except (OSError, ValueError):
-        return True
-    return meta.get("seed") != seed or meta.get("frames") != frames

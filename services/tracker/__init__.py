@@ -146,9 +146,10 @@ class TrackerCore(ServiceCore):
         self.waiting[f.seq] = f
         if len(self.waiting) > 1 and f.seq < next(reversed(self.waiting)):
             self.waiting = OrderedDict(sorted(self.waiting.items()))
-        self.recent[f.seq] = f
-        while len(self.recent) > self.opts.keep_frames:
-            self.recent.popitem(last=False)
+        if self.opts.frontend == "map":  # images for references (the mono front end keeps its own keyframes)
+            self.recent[f.seq] = f
+            while len(self.recent) > self.opts.keep_frames:
+                self.recent.popitem(last=False)
         return self._advance()
 
     def on_field(self, s: P.FieldSnapshot) -> list[Output]:
@@ -281,10 +282,11 @@ class TrackerCore(ServiceCore):
         return float(np.linalg.norm(a[:3, 3] - self._first_anchored[:3, 3]))
 
     def _extra_depth(self):
-        """Depth rendered from the map we hold, for new keyframes (None before the first snapshot)."""
+        """Depth rendered from the map we hold, for new keyframes (None before the first snapshot);
+        the view is built only when the front end asks (``MonoConfig.dense_extra``)."""
         if self.field is None or self.camera is None:
             return None
-        return self._map_view().depth_fn
+        return lambda c2w: self._map_view().depth_fn(c2w)
 
     def _advance_mono(self) -> list[Output]:
         out: list[Output] = []
