@@ -167,26 +167,24 @@ def run_demo(args) -> int:
 
 def demo_metrics(out: Path, scene_dir: Path) -> dict:
     """ATE of ``out/traj.txt`` against the scene's ground truth (SE3 and Sim3) and the map's scores
-    (``out/map.ply`` against the visible GT cloud), unaligned and after the trajectory's Sim3."""
-    from fmapping.metrics import align_trajectory, eval_recon_files, eval_traj_files, match_trajectory_files
+    (:func:`fmapping.pipeline.recon_stats`: unaligned and after the trajectory's Sim3)."""
+    from fmapping.datasets import open_dataset
+    from fmapping.metrics import align_trajectory, ate, match_trajectory_files
+    from fmapping.pipeline import recon_stats
 
-    gt_traj, gt_cloud = scene_dir / "groundtruth.txt", scene_dir / "gt_visible_cloud.ply"
     report: dict = {"out": str(out)}
     sim3 = None
     if (out / "traj.txt").is_file():
-        t = {a: eval_traj_files(out / "traj.txt", gt_traj, a)["ate"] for a in ("se3", "sim3")}
-        est, gt, _, _ = match_trajectory_files(out / "traj.txt", gt_traj)
+        est, gt, _, _ = match_trajectory_files(out / "traj.txt", scene_dir / "groundtruth.txt")
+        t = {a: ate(est, gt, a) for a in ("se3", "sim3")}
         sim3 = align_trajectory(est, gt, "sim3")[1]
         report["trajectory"] = {"frames": len(est), "ate_se3_cm": 100 * t["se3"]["rmse_m"],
                                 "ate_sim3_cm": 100 * t["sim3"]["rmse_m"], "sim3_scale": float(sim3[0]),
                                 "rot_fit_mean_deg": t["sim3"]["rot_fit_mean_deg"]}
-    if (out / "map.ply").is_file() and gt_cloud.is_file():
+    if (out / "map.ply").is_file():
         keys = ("accuracy_cm", "completion_cm", "completion_ratio")
-        r = eval_recon_files(out / "map.ply", gt_cloud, samples=200_000, threshold=0.05, seed=0)
-        report["recon"] = {k: r[k] for k in keys if k in r}
-        if sim3 is not None:
-            r = eval_recon_files(out / "map.ply", gt_cloud, samples=200_000, threshold=0.05, seed=0, align=sim3)
-            report["recon_sim3"] = {k: r[k] for k in keys if k in r}
+        for name, r in recon_stats(open_dataset(scene_dir), out, sim3=sim3).items():
+            report[name] = {k: r[k] for k in keys if k in r}
     return report
 
 

@@ -16,8 +16,9 @@ Pose sources (``args.poses``):
   (``slam.frontend: mono``): KLT tracks and a two-view bootstrap give the first poses
   and sparse landmarks; every frame is then aligned photometrically
   (:class:`~fmapping.tracking.frontend.DirectTracker`, the fast path) to the current
-  keyframe, whose depth comes from the landmarks (plus depth rendered from the map
-  where mapped frames looked, for each keyframe at which it agrees with the landmarks); keyframes are refined by a windowed bundle
+  keyframe, whose depth comes from the landmarks (with ``mono.dense_extra``, off by
+  default, plus depth rendered from the map where mapped frames looked, at each keyframe
+  where it agrees with the landmarks); keyframes are refined by a windowed bundle
   adjustment. The mapper receives the tracked poses (its init pose optimisation is
   off unless ``slam.mapper_refines_init``). ``slam.frontend: map`` is the paper-style
   alternative: constant-depth bootstrap guesses refined by the mapper's init, then
@@ -81,8 +82,8 @@ class SlamConfig:
     render_compare: RenderCompareConfig = field(default_factory=RenderCompareConfig)
     kiss_icp: KissIcpConfig = field(default_factory=KissIcpConfig)
     mono: MonoConfig = field(default_factory=MonoConfig)
-    frontend: str = "mono"  # RGB-only front end: "mono" (two-view bootstrap + BA, sparse depth; map depth added
-    #                         when it agrees) | "map" (mapper init from constant-depth guesses, rendered depth only)
+    frontend: str = "mono"  # RGB-only front end: "mono" (two-view bootstrap + BA, sparse depth; map depth only with
+    #                         mono.dense_extra) | "map" (mapper init from constant-depth guesses, rendered depth only)
     mapper_refines_init: bool = False  # let the mapper's init re-estimate the front end's init poses
     tracking: str = "direct"  # photometric tracking path: "direct" | "render_compare"
     init_depth: float = 2.0  # assumed depth of the constant-depth plane of the bootstrap (units if no anchor)

@@ -430,7 +430,9 @@ def test_two_view_known_baseline_recovers_rotation_despite_outliers():
     assert two_view_known_baseline(cam, ua[:5], ub[:5], c2w_b[:3, 3]) is None
 
 
-def _run_mono(ds, cfg):
+def _run_mono(ds, cfg, extra_of=None):
+    """The mono front end over ``ds`` anchored by its GT (frame 0 pose, baseline length);
+    ``extra_of(k)`` gives frame k's ``extra_depth`` (or None). Returns (front end, GT poses)."""
     from fmapping.tracking.frontend import TrackerConfig
     from fmapping.tracking.mono import MonoFrontend
 
@@ -441,7 +443,7 @@ def _run_mono(ds, cfg):
         fe.bootstrap(i, ds[i].rgb, g[0], lambda k: float(np.linalg.norm(g[k][:3, 3] - g[0][:3, 3])))
         i += 1
     for k in range(i, len(ds)):
-        fe.track(k, ds[k].rgb)
+        fe.track(k, ds[k].rgb, extra_depth=None if extra_of is None else extra_of(k))
     return fe, g
 
 
@@ -486,25 +488,17 @@ def test_mono_adds_dense_depth_to_keyframes_only_where_it_agrees_with_the_landma
 
     from fmapping.datasets import open_dataset
     from fmapping.tracking.direct import bilinear
-    from fmapping.tracking.frontend import TrackerConfig
-    from fmapping.tracking.mono import MonoConfig, MonoFrontend
+    from fmapping.tracking.mono import MonoConfig
 
     ds = open_dataset(room320)
-    g = [ds[i].c2w for i in range(len(ds))]
 
     def run(scale):
+        def extra_of(k):  # frame k's true depth, scaled: uv -> depth, whatever the keyframe pose
+            d = ds[k].depth.astype(np.float64)
+            return lambda c2w: (lambda uv: scale * bilinear(d, uv[:, 0], uv[:, 1])[:, 0])
+
         cfg = dataclasses.replace(MonoConfig(), dense_extra=scale is not None)
-        fe = MonoFrontend(ds.camera, TrackerConfig(), cfg)
-        i = 0
-        while not fe.initialized:
-            fe.bootstrap(i, ds[i].rgb, g[0], lambda k: float(np.linalg.norm(g[k][:3, 3] - g[0][:3, 3])))
-            i += 1
-        for k in range(i, len(ds)):
-            depth = ds[k].depth.astype(np.float64)
-            extra = None if scale is None else \
-                (lambda c2w, d=depth: (lambda uv: scale * bilinear(d, uv[:, 0], uv[:, 1])[:, 0]))
-            fe.track(k, ds[k].rgb, extra_depth=extra)
-        return fe
+        return _run_mono(ds, cfg, None if scale is None else extra_of)[0]
 
     plain, true, wrong = run(None), run(1.0), run(1.3)
     assert true.dense_checks and wrong.dense_checks

@@ -56,17 +56,19 @@ class MonoConfig:
     min_ref_points: int = 40
     unit_depth: float = 2.0  # scale convention without an anchor: median scene depth of the bootstrap
     window: int = 7  # keyframes in the bundle adjustment
-    # Up to this many older keyframes that saw the window's landmarks join the BA, fixed. Measured (3 = 10):
-    # synthetic rooms, Sim3 ATE seeds 1 / 3 / 4: 2.13 / 3.55 / 4.90 cm (0) -> 1.65 / 2.75 / 4.22 cm; but TUM
-    # fr1_rpy 60 frames, rotation from the first GT pose 1.69 -> 2.42 deg, SE3 3.45 -> 3.50 cm. Off by default.
+    # Up to this many older keyframes that saw the window's landmarks join the BA, fixed. Measured with 10:
+    # synthetic rooms (200 frames), Sim3 ATE seeds 0-4: 0.91 / 1.61 / 2.00 / 0.80 / 1.99 cm (0) -> 0.90 / 1.78 /
+    # 1.91 / 0.55 / 1.88 cm; but TUM fr1_rpy (60 frames): rotation from the first GT pose 1.69 -> 2.42 deg,
+    # SE3 3.45 -> 3.50 cm (3 gave the same). Off by default.
     ba_fixed_observers: int = 0
     ba: bool = True
     ba_huber_px: float = 1.5
     ba_max_nfev: int = 15
     ba_outlier_px: float = 4.0  # observations beyond this after BA are dropped
     # Add depth from ``extra_depth`` (the map) to new keyframes when given ... Off: on the synthetic
-    # room (seed 0, 200 frames) the map's depth sits ~2 % off the landmarks and Sim3 ATE went
-    # 1.46 cm (off) -> 2.39 cm (on, gated as below); ungated it derailed tracking (24 cm).
+    # room (seed 0, 200 frames, with the 21 px KLT window of then) the map's depth sat ~2 % off the
+    # landmarks and Sim3 ATE went 1.46 cm (off) -> 2.39 cm (on, gated as below); ungated it derailed
+    # tracking (24 cm).
     dense_extra: bool = False
     dense_max_gap: float = 0.05  # ... and when, at the landmarks' pixels, its median relative gap to the
     dense_min_rendered: float = 0.5  # landmarks' depth is below this, with depth at this fraction of them
