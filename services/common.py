@@ -286,7 +286,7 @@ def usable_camera(cam: Any, undistorted: bool = False) -> dict:
     from fmapping.camera import PinholeCamera
 
     if undistorted and isinstance(cam, dict) and cam.get("dist"):
-        raise ValueError(f"camera has distortion coefficients {cam['dist']}; the mapper needs undistorted frames "
+        raise ValueError(f"camera has distortion coefficients {cam['dist']}; this service needs undistorted frames "
                          "(the player undistorts)")
     try:
         out = P.check_camera(cam, "camera")

@@ -1311,7 +1311,7 @@ def test_a_first_frame_the_services_cannot_use_is_rejected_not_adopted(dataset):
     distorted = dataclasses.replace(good, camera=dict(good.camera, dist=[0.1, 0.0, 0.0, 0.0]))
     far_pp = dataclasses.replace(good, camera=dict(good.camera, cx=40.0 * good.camera["width"]))
     for core in (MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", checkpoint_every=0)), TrackerCore()):
-        bad = [distorted, far_pp] if isinstance(core, MapperCore) else [far_pp]
+        bad = [distorted, far_pp]  # the mapper and the (default, mono) tracker model pinhole cameras
         for f in bad:
             assert core.handle("frames", P.encode(f)) == []
         assert core.camera_dict is None and core.counters.get("rejected_frames") == len(bad)

@@ -129,7 +129,7 @@ class TrackerCore(ServiceCore):
         raise ValueError(f"TrackerCore: unexpected message {type(msg).__name__}")
 
     def on_frame(self, f: P.Frame) -> list[Output]:
-        cam = self.frame_camera(f)
+        cam = self.frame_camera(f, undistorted=self.opts.frontend == "mono")  # KLT / BA model a pinhole camera
         if cam is None:
             return []
         if self.camera_dict is None:
