@@ -221,10 +221,14 @@ class TrackerCore(ServiceCore):
             return self._on_anchor(p)
         if p.source != "mapper":
             return []
-        self.mapper_poses[p.seq] = np.array(p.c2w)
-        while len(self.mapper_poses) > self.opts.max_poses:
-            self.mapper_poses.pop(min(self.mapper_poses))
-        self.counters.inc("mapper_poses")
+        return self._remember(self.mapper_poses, p, "mapper_poses")
+
+    def _remember(self, store: dict, p: P.Pose, counter: str) -> list[Output]:
+        """Keep pose ``p`` in ``store`` (at most ``max_poses``, oldest out), count it, move on."""
+        store[p.seq] = np.array(p.c2w)
+        while len(store) > self.opts.max_poses:
+            store.pop(min(store))
+        self.counters.inc(counter)
         return self._advance()
 
     def reset(self) -> None:
@@ -269,11 +273,7 @@ class TrackerCore(ServiceCore):
     def _on_anchor(self, p: P.Pose) -> list[Output]:
         if (self.mono is not None and self.mono.initialized) or p.seq <= self.last_seq:
             return []
-        self.anchors[p.seq] = np.array(p.c2w)
-        while len(self.anchors) > self.opts.max_poses:
-            self.anchors.pop(min(self.anchors))
-        self.counters.inc("anchor_poses")
-        return self._advance()
+        return self._remember(self.anchors, p, "anchor_poses")
 
     def _anchor_baseline(self, seq: int) -> Optional[float]:
         a = self.anchors.get(seq)
