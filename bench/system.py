@@ -62,6 +62,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+import report  # noqa: E402  (bench/report.py: the machine line)
 
 from fmapping import protocol as P  # noqa: E402
 
@@ -385,16 +387,6 @@ def summarize(fps: float, rows: list[dict], mon: Monitor, out: Path, scene: Path
     return s
 
 
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def traj_sim3(est_path: Path, gt_path: Path):
     """(s, R, t) aligning a TUM trajectory's positions to GT (as the Sim3 ATE does), or None."""
     from fmapping.metrics import align_trajectory, match_trajectory_files
@@ -548,7 +540,7 @@ def main(argv=None) -> int:
     t_all = time.monotonic()
     scene = make_scene(work, a.frames, size, a.seed)
     results = {
-        "machine": {"platform": platform.platform(), "cpu": cpu_model(), "python": platform.python_version(),
+        "machine": {"platform": platform.platform(), "cpu": report.cpu_model(), "python": platform.python_version(),
                     "cpus": os.cpu_count(),
                     "loadavg_at_start": [round(x, 2) for x in os.getloadavg()],
                     "note": "2 CPU cores shared with other jobs: timings and lags are noisy"},

@@ -56,13 +56,6 @@ def seen_by(points: np.ndarray, c2ws: list, camera, near: float, far: float, mar
     return seen
 
 
-def backproject(camera, c2w: np.ndarray, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """World points (N, 3) of pixels ``uv`` (N, 2) at camera depth ``z`` (N,) of a camera at ``c2w``."""
-    pc = np.stack([(uv[:, 0] - camera.cx) / camera.fx * z, (uv[:, 1] - camera.cy) / camera.fy * z, z], -1)
-    t = np.asarray(c2w, np.float64)
-    return pc @ t[:3, :3].T + t[:3, 3]
-
-
 class MapView:
     def __init__(self, field, aabb: Tensor, camera: PinholeCamera, near: float, far: float,
                  cfg: Optional[MapViewConfig] = None, seen_poses: Optional[list] = None):
@@ -107,7 +100,7 @@ class MapView:
         dev = self.field.device if hasattr(self.field, "device") else torch.device("cpu")
         pose = torch.as_tensor(np.asarray(c2w, np.float64), dtype=torch.float32, device=dev)
         uvt = torch.as_tensor(np.asarray(uv, np.float64), dtype=torch.float32, device=dev)
-        out = []
+        out, pts = [], []
         for s in range(0, len(uvt), self.cfg.chunk):
             o, d = self.camera.rays(pose, uvt[s:s + self.cfg.chunk])
             t, ok = self._samples(o, d)
@@ -115,13 +108,14 @@ class MapView:
             dep = r.depth / r.acc.clamp_min(1e-6)
             good = ok & (r.acc >= self.cfg.min_acc)
             out.append(torch.where(good, dep, torch.full_like(dep, float("nan"))))
+            pts.append(o + d * dep[:, None])  # z-normalised rays: the surface point at camera depth dep
         if not out:
             return np.zeros(0)
         z = torch.cat(out).double().cpu().numpy()
         if self.seen_poses is not None:
             ok = np.flatnonzero(np.isfinite(z))
-            pts = backproject(self.camera, c2w, np.asarray(uv, np.float64)[ok], z[ok])
-            z[ok[~seen_by(pts, self.seen_poses, self.camera, self.near, self.far)]] = np.nan
+            world = torch.cat(pts).double().cpu().numpy()[ok]
+            z[ok[~seen_by(world, self.seen_poses, self.camera, self.near, self.far)]] = np.nan
         return z
 
     def depth_fn(self, c2w: np.ndarray):

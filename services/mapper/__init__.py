@@ -16,8 +16,8 @@ trusted, as by ``fmapping map`` and ``fmapping slam`` (``optimize_init_poses`` o
 map is initialised a frame may enter without a pose when ``unposed_init`` is on (the mapper
 then guesses and optimises its init poses, the first ``anchor_frames`` fixed by the anchor
 source): that is for the tracker's ``map`` front end, which cannot track before there is a
-map; the default ``mono`` tracker poses every frame itself. A frame waits for its pose; when more than ``max_pending`` frames wait,
-the oldest is dropped (``frames_without_pose``), and so is a frame whose pose has not come
+map; the default ``mono`` tracker poses every frame itself. A frame waits for its pose;
+when more than ``max_pending`` frames wait, the oldest is dropped (``frames_without_pose``), and so is a frame whose pose has not come
 within ``pose_timeout`` seconds (a dead or restarted producer). The acknowledgement (``ack``) is the
 newest frame number consumed (integrated or dropped): the player's flow control waits on it.
 

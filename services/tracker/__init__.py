@@ -249,7 +249,7 @@ class TrackerCore(ServiceCore):
         self.mono = None
         self.anchors.clear()
         self._boot_stamps.clear()
-        self._c2w0 = None
+        self._c2w0 = self._first_anchored = None
         self.counters.inc("resets")
 
     def _set_camera(self, cam: dict) -> None:
@@ -267,7 +267,7 @@ class TrackerCore(ServiceCore):
         from fmapping.tracking.mono import MonoFrontend
 
         self.mono = MonoFrontend(self.camera, self.cfg, self.mono_cfg)
-        self._c2w0 = None
+        self._c2w0 = self._first_anchored = None
         self._boot_stamps.clear()
 
     def _on_anchor(self, p: P.Pose) -> list[Output]:
@@ -277,7 +277,7 @@ class TrackerCore(ServiceCore):
 
     def _anchor_baseline(self, seq: int) -> Optional[float]:
         a = self.anchors.get(seq)
-        if a is None or self._c2w0 is None or self._first_anchored is None:
+        if a is None or self._first_anchored is None:
             return None
         return float(np.linalg.norm(a[:3, 3] - self._first_anchored[:3, 3]))
 

@@ -1,8 +1,9 @@
 """``python -m services.tracker``: the tracking process (zenoh shell around :class:`services.tracker.TrackerCore`).
 
 Subscribes to ``frames``, ``map/field``, ``poses/mapper``, ``control`` and (front end
-``mono``) the anchor poses ``poses/<anchor>``; publishes ``poses/tracker`` and ``status/tracker``. On start it asks ``map/latest`` for the newest
-field snapshot (late joiners and restarts continue from the current map).
+``mono``) the anchor poses ``poses/<anchor>``; publishes ``poses/tracker`` and
+``status/tracker``. On start it asks ``map/latest`` for the newest field snapshot (late
+joiners and restarts continue from the current map).
 """
 from __future__ import annotations
 
