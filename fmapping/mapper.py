@@ -279,6 +279,15 @@ class Mapper:
         self._finished = True
         return last
 
+    def set_poses(self, poses: dict) -> int:
+        """Replace the poses of frames already added (``{frame id: c2w}``), e.g. with a tracker's
+        bundle-adjusted ones; later iterations train on them. Every pose is checked first, so a bad
+        one changes nothing. Unknown frame ids are ignored; returns how many poses were replaced."""
+        checked = {int(i): _checked_pose(c2w, f"set_poses: frame {i}") for i, c2w in poses.items()
+                   if int(i) in self._poses}
+        self._poses.update(checked)
+        return len(checked)
+
     def frame_poses(self) -> dict[int, np.ndarray]:
         return {i: p.numpy().copy() for i, p in sorted(self._poses.items())}
 
@@ -370,17 +379,7 @@ class Mapper:
                 raise ValueError("add_frame: c2w is required (a pose may be omitted only during init "
                                  "with optimize_init_poses=True)")
         else:
-            p = np.asarray(c2w, dtype=np.float64)
-            if p.shape != (4, 4):
-                raise ValueError(f"add_frame: c2w must be 4x4, got shape {p.shape}")
-            if not np.isfinite(p).all():
-                raise ValueError("add_frame: c2w contains NaN or Inf")
-            r = p[:3, :3]
-            if np.abs(r @ r.T - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(r) - 1) > 1e-3 \
-                    or np.abs(p[3] - [0, 0, 0, 1]).max() > 1e-6:
-                raise ValueError("add_frame: c2w is not a rigid transform (rotation not orthonormal or last row "
-                                 "not 0 0 0 1)")
-            pose = torch.from_numpy(p.copy())
+            pose = _checked_pose(c2w, "add_frame: c2w")
         dep = None
         if depth is not None and self.cfg.use_depth:
             d = np.asarray(depth)
@@ -852,6 +851,20 @@ def _pixel_patches(imgs: Tensor, frame: Tensor, u: Tensor, v: Tensor, radius: in
     uu = (u[:, None] + du.reshape(-1)).clamp(0, w - 1)
     vv = (v[:, None] + dv.reshape(-1)).clamp(0, h - 1)
     return imgs[frame[:, None], vv, uu]
+
+
+def _checked_pose(c2w, what: str) -> Tensor:
+    """float64 (4, 4) tensor of a rigid camera-to-world pose; ValueError naming ``what`` otherwise."""
+    p = np.asarray(c2w, dtype=np.float64)
+    if p.shape != (4, 4):
+        raise ValueError(f"{what} must be 4x4, got shape {p.shape}")
+    if not np.isfinite(p).all():
+        raise ValueError(f"{what} contains NaN or Inf")
+    r = p[:3, :3]
+    if np.abs(r @ r.T - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(r) - 1) > 1e-3 \
+            or np.abs(p[3] - [0, 0, 0, 1]).max() > 1e-6:
+        raise ValueError(f"{what} is not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
+    return torch.from_numpy(p.copy())
 
 
 def _orthonormalize(p: Tensor) -> Tensor:

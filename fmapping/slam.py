@@ -96,6 +96,10 @@ class SlamConfig:
     init_retry_frames: int = 10
     refresh_every_window: bool = True  # re-render the reference depth after each mapping window
     feed_lost_frames: bool = False  # give the mapper frames whose tracking was lost (at the predicted pose)
+    # After each keyframe bundle adjustment, give the mapper the refined poses of the frames it holds
+    # (mono front end). Measured on synthetic seed 2 (200 frames): a map built from the final poses scores
+    # 87.7 % completion ratio after Sim3 against 82.7 % for the map built from the poses at tracking time.
+    mapper_follows_ba: bool = True
     export: bool = True  # write map.ply / mesh.ply at the end (``--no-export`` turns it off)
 
     def validate(self) -> None:
@@ -227,6 +231,7 @@ class SlamRun:
         self.track_ms: dict[int, float] = {}
         self.track_info: dict[int, dict] = {}
         self.loss_events: list[dict] = []
+        self.pose_updates = 0  # mapper poses replaced by bundle-adjusted ones (mapper_follows_ba)
         self.window_stats: list[dict] = []
         self.est: dict[int, np.ndarray] = {}  # dataset index -> internal c2w
         self.fid_of: dict[int, int] = {}  # dataset index -> mapper frame id
@@ -503,6 +508,8 @@ class SlamRun:
                                          "reference": r.reference})
             if not r.lost or cfg.feed_lost_frames:
                 self._after_window(self._add_to_mapper(i, f.rgb, r.c2w, f.timestamp, f.depth))
+            if r.need_keyframe and cfg.mapper_follows_ba:
+                self._push_refined_poses(fe.poses())
         # BA-refined poses of every tracked frame
         for k, p in fe.poses().items():
             self.est[k] = p
@@ -510,6 +517,13 @@ class SlamRun:
                                   "ms_median": float(np.median([b["ms"] for b in fe.ba_stats])) if fe.ba_stats else None,
                                   "rms_after_px_median": float(np.median([b["rms_after_px"] for b in fe.ba_stats]))
                                   if fe.ba_stats else None}
+
+    def _push_refined_poses(self, poses: dict) -> None:
+        """Hand the front end's refined poses (by dataset index) to the mapper (by its frame id)."""
+        upd = {self.fid_of[i]: p for i, p in poses.items() if i in self.fid_of}
+        self.pose_updates += self.mapper.set_poses(upd)
+        for i, p in poses.items():
+            self.est[i] = p
 
     def _after_window(self, win) -> None:
         if win is not None and self.mapper is not None and self.mapper.initialized:
@@ -648,6 +662,7 @@ def run_slam(args) -> dict:
         "tracking_ms": {str(i): run.track_ms[i] for i in sorted(run.track_ms)},
         "tracking": {str(i): run.track_info[i] for i in sorted(run.track_info)},
         "tracking_loss_events": run.loss_events,
+        "mapper_pose_updates": run.pose_updates,
         "windows": run.window_stats,
         "mapper": mstats,
         "export": export,

@@ -87,6 +87,23 @@ def test_bad_input_raises_and_leaves_state_unchanged():
     np.testing.assert_allclose(m2.frame_poses()[1], np.eye(4))
 
 
+def test_set_poses_checks_every_pose_before_replacing_any():
+    scene, cam, c2w, views = tiny_scene(8)
+    m = Mapper(tiny_config(init_frames=4), cam, aabb=room_aabb(scene))
+    for i in range(3):
+        m.add_frame(views[i][0], c2w[i])
+    moved = c2w[1].copy()
+    moved[:3, 3] += [0.05, -0.02, 0.01]
+    bad = c2w[2].copy()
+    bad[1, 1] = np.inf
+    with pytest.raises(ValueError, match="frame 2 contains NaN or Inf"):
+        m.set_poses({1: moved, 2: bad})
+    np.testing.assert_array_equal(m.frame_poses()[1], c2w[1])  # the good pose of the batch was not applied
+    assert m.set_poses({1: moved, 7: c2w[0]}) == 1  # frame 7 was never added: ignored
+    np.testing.assert_array_equal(m.frame_poses()[1], moved)
+    np.testing.assert_array_equal(m.frame_poses()[2], c2w[2])
+
+
 def test_config_validation():
     with pytest.raises(ValueError):
         MapperConfig(window_size=5, n_global_keyframes=5).validate()
