@@ -184,9 +184,9 @@ class Monitor:
             if p.source == "gt":
                 self.t_pub.setdefault(p.seq, t)
                 self.gt[p.seq] = np.array(p.c2w)
-            elif p.source == "tracker":
-                if p.seq not in self.tracker:
-                    self.tracker[p.seq] = (t, p.quality, np.array(p.c2w))
+            elif p.source == "tracker":  # first arrival (latency), newest pose (bundle-adjusted again)
+                first = self.tracker.get(p.seq)
+                self.tracker[p.seq] = (t if first is None else first[0], p.quality, np.array(p.c2w))
             elif p.source == "mapper":
                 self.t_map.setdefault(p.seq, t)
 

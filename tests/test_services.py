@@ -225,6 +225,30 @@ def test_mapper_core_external_source_waits_for_its_poses(dataset):
     assert core.ack == 5 and core.counters.get("frames_skipped") == 1
 
 
+def test_mapper_core_takes_a_later_pose_of_an_integrated_frame_as_its_refinement(dataset):
+    """The mono tracker republishes the poses its bundle adjustment moved: the mapper replaces
+    the pose of a frame it integrated, and counts poses of frames it never held as stale."""
+    from services.mapper import MapperCore, MapperServiceOptions
+
+    core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="tracker", points_interval=1e9,
+                                                        checkpoint_every=0))
+    feed(core, dataset, [0, 1, 3], source="tracker")  # frame 2 never reached the mapper
+    assert core.ack == 3
+    moved = np.array(dataset[1].c2w)
+    moved[:3, 3] += [0.03, 0.0, -0.01]
+
+    def send(seq, c2w, **kw):
+        return core.handle("poses", P.encode(P.Pose(seq=seq, timestamp=0.0, c2w=c2w, source="tracker", **kw)))
+
+    assert send(1, moved) == [] and core.counters.get("refined_poses") == 1
+    np.testing.assert_allclose(core.mapper.frame_poses()[1], moved, atol=1e-12)
+    np.testing.assert_allclose(core.mapper.frame_poses()[2], dataset[3].c2w, atol=1e-12)  # frame id 2 = seq 3
+    send(2, moved)  # never integrated
+    send(3, moved, quality=0.0)  # unusable
+    assert core.counters.get("stale_poses") == 2
+    np.testing.assert_allclose(core.mapper.frame_poses()[2], dataset[3].c2w, atol=1e-12)
+
+
 def test_mapper_checkpoint_resume(dataset, tmp_path):
     from services.mapper import MapperCore, MapperServiceOptions
 
@@ -358,16 +382,19 @@ def test_restarted_tracker_resyncs_from_the_latest_snapshot(dataset, tmp_path):
 
 def _feed_mono(core, ds, anchors: bool):
     """Frames of ``ds`` into a mono TrackerCore (each preceded by its GT pose on the anchor
-    channel when ``anchors``, as io play sends them); returns {seq: Pose} and {seq: frame
-    index whose arrival answered it}."""
-    poses, answered_at = {}, {}
+    channel when ``anchors``, as io play sends them); returns the first Pose per seq, the
+    frame index whose arrival answered it, and the newest Pose per seq (republished after
+    bundle adjustment)."""
+    first, answered_at, newest = {}, {}, {}
     for i in range(len(ds)):
         f = ds[i]
         if anchors:
             core.handle("poses", P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
         for _, m in core.handle("frames", P.encode(P.frame_from_dataset(f, seq=i))):
-            poses[m.seq], answered_at[m.seq] = m, i
-    return poses, answered_at
+            if m.seq not in first:
+                first[m.seq], answered_at[m.seq] = m, i
+            newest[m.seq] = m
+    return first, answered_at, newest
 
 
 def test_mono_tracker_core_is_the_library_front_end_anchored_by_gt(room320):
@@ -378,13 +405,14 @@ def test_mono_tracker_core_is_the_library_front_end_anchored_by_gt(room320):
     from fmapping.datasets import open_dataset
     from fmapping.metrics import ate
     from fmapping.tracking.frontend import TrackerConfig
+    from fmapping.tracking.direct import pose_distance
     from fmapping.tracking.mono import MonoFrontend
     from services.tracker import TrackerCore
 
     ds = open_dataset(room320)
     n = len(ds)
     core = TrackerCore()
-    poses, answered_at = _feed_mono(core, ds, anchors=True)
+    poses, answered_at, newest = _feed_mono(core, ds, anchors=True)
     assert sorted(poses) == list(range(n)) and core.ack == n - 1 and not core.waiting
     boot = core.counters.get("bootstrap_frame")
     assert 1 <= boot < 20 and all(answered_at[i] == boot for i in range(boot + 1))
@@ -404,6 +432,14 @@ def test_mono_tracker_core_is_the_library_front_end_anchored_by_gt(room320):
     for k in range(n):
         np.testing.assert_allclose(poses[k].c2w, ref[k], atol=1e-9, err_msg=f"frame {k}")
     np.testing.assert_allclose(poses[0].c2w, g[0], atol=1e-12)
+    # poses the bundle adjustment moved were sent again, with their first timestamp and quality: the newest
+    # pose of every frame is the front end's final one (to the republish threshold)
+    assert core.counters.get("republished", 0) > 0
+    final = fe.poses()
+    for k in range(n):
+        dt, dr = pose_distance(newest[k].c2w, final[k])
+        assert dt <= 1e-3 + 1e-9 and dr <= 0.05 + 1e-9, (k, dt, dr)
+        assert newest[k].timestamp == poses[k].timestamp and newest[k].quality == poses[k].quality
     est = np.stack([poses[k].c2w for k in range(n)])
     # measured: 0.54 cm unaligned (GT world frame and scale), 0.25 cm after Sim3 (with the 21 px KLT window of
     # before: 1.65 / 0.56 cm)
@@ -420,10 +456,10 @@ def test_mono_tracker_core_without_anchors_uses_the_unit_depth_convention(room32
 
     ds = open_dataset(room320)
     core = TrackerCore()
-    poses, _ = _feed_mono(core, ds, anchors=False)
+    poses, _, _ = _feed_mono(core, ds, anchors=False)
     assert sorted(poses) == list(range(len(ds))) and core.counters.get("bootstrap_anchored") == 0
     np.testing.assert_allclose(poses[0].c2w, np.eye(4), atol=1e-12)  # no world frame given: frame 0 is it
-    anchored, _ = _feed_mono(TrackerCore(), ds, anchors=True)
+    anchored, _, _ = _feed_mono(TrackerCore(), ds, anchors=True)
     est = np.stack([poses[k].c2w for k in range(len(ds))])
     r = ate(est, np.stack([anchored[k].c2w for k in range(len(ds))]), "sim3")
     assert r["rmse_m"] < 1e-3 and r["rot_fit_mean_deg"] < 0.01, r

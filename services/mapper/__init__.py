@@ -12,7 +12,9 @@ frames to the mapper in order and returns the messages to publish:
   (and at the end).
 
 Pose sources: ``gt`` / ``external`` / ``tracker`` (key ``poses/<source>``). Given poses are
-trusted, as by ``fmapping map`` and ``fmapping slam`` (``optimize_init_poses`` off). Before the
+trusted, as by ``fmapping map`` and ``fmapping slam`` (``optimize_init_poses`` off). A later pose
+for a frame already integrated replaces its pose (``refined_poses``; the mono tracker sends the
+poses its bundle adjustment moved). Before the
 map is initialised a frame may enter without a pose when ``unposed_init`` is on (the mapper
 then guesses and optimises its init poses, the first ``anchor_frames`` fixed by the anchor
 source): that is for the tracker's ``map`` front end, which cannot track before there is a
@@ -28,6 +30,7 @@ restored with ``torch.load(weights_only=True)``.
 """
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import json
 import logging
@@ -178,14 +181,29 @@ class MapperCore(ServiceCore):
             self.counters.inc("ignored_poses")
             return []
         if p.seq <= self.last_seq:
-            self.counters.inc("stale_poses")
-            return []
+            return self._refine_pose(p)
         self.poses[p.seq] = p
         self.counters.inc("poses_received")
         while len(self.poses) > self.opts.max_poses:
             self.poses.pop(min(self.poses))
             self.counters.inc("dropped_poses")
         return self._integrate()
+
+    def _refine_pose(self, p: P.Pose) -> list[Output]:
+        """A new pose for a frame already integrated (e.g. the tracker's bundle adjustment moved
+        it) replaces the mapper's; one for a frame it never integrated is stale."""
+        i = bisect.bisect_left(self.seq_of_fid, p.seq)  # frames are integrated in seq order
+        usable = p.quality is None or p.quality > 0.0
+        if self.mapper is None or i == len(self.seq_of_fid) or self.seq_of_fid[i] != p.seq or not usable:
+            self.counters.inc("stale_poses")
+            return []
+        try:
+            self.mapper.set_poses({i: np.array(p.c2w)})
+        except ValueError as e:
+            self.bad_input(f"pose {p.seq}: {e}", "rejected_poses")
+            return []
+        self.counters.inc("refined_poses")
+        return []
 
     def on_control(self, c: P.Control) -> list[Output]:
         self.counters.inc(f"control_{c.command}")

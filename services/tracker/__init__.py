@@ -14,6 +14,9 @@ Two front ends (``TrackerServiceOptions.frontend``):
   looked, and only when it agrees with the landmarks). A bootstrap that fails (no parallax
   within ``MonoConfig.init_max_frames`` frames) restarts at the next frame; the frames it
   held are answered with ``quality = 0``. The mapper maps with these poses as given.
+  After each keyframe's bundle adjustment, the poses it moved are published again (same
+  ``seq``, ``republish_min_m`` / ``republish_min_deg``): the mapper replaces the poses of
+  frames it has integrated, the recorder keeps the newest, as ``fmapping slam`` does in-process.
 * ``map`` (the paper-style loop): direct alignment against keyframes whose depth is
   rendered from the mapper's field. Protocol with the mapper (``services.mapper
   --poses tracker --unposed-init yes``):
@@ -65,6 +68,11 @@ class TrackerServiceOptions:
     frontend: str = "mono"  # "mono" (RGB-only front end from frame 0) | "map" (track against the mapper's field)
     anchor_source: str = "gt"  # poses fixing world frame and scale of the mono bootstrap ("" = none)
     anchor_wait: int = 2  # mono bootstrap: frames a frame waits for its anchor pose once anchors flow
+    # mono: after each keyframe bundle adjustment, publish again (same seq) the poses it moved by more
+    # than this, so the mapper trains on them and the recorder keeps them ("republished" counter)
+    republish_min_m: float = 1e-3
+    republish_min_deg: float = 0.05
+    republish: bool = True
 
     def validate(self) -> "TrackerServiceOptions":
         if self.frontend not in ("mono", "map"):
@@ -103,6 +111,7 @@ class TrackerCore(ServiceCore):
         self.recent: "OrderedDict[int, P.Frame]" = OrderedDict()  # images for references
         self.mapper_poses: dict[int, np.ndarray] = {}
         self.own_poses: dict[int, np.ndarray] = {}  # tracked (not lost) poses
+        self.published: dict[int, tuple[float, float]] = {}  # own_poses' (timestamp, quality) as published
         self.snapshot_pose: Optional[tuple[int, np.ndarray]] = None  # (frame_seq, c2w) of the newest snapshot
         self.last_seq = -1
         self.ref_seq = -1
@@ -242,6 +251,7 @@ class TrackerCore(ServiceCore):
         self.recent.clear()
         self.mapper_poses.clear()
         self.own_poses.clear()
+        self.published.clear()
         self.snapshot_pose = None
         self.ref_seq = -1
         self._ref_target = None
@@ -316,7 +326,7 @@ class TrackerCore(ServiceCore):
                     self.counters.set("bootstrap_frame", seq)
                     self.counters.set("bootstrap_anchored", int(fe.init_info.get("scale_from") == "anchor"))
                     for s in sorted(poses):
-                        self.own_poses[s] = np.array(poses[s])
+                        self._keep_own(s, poses[s], self._boot_stamps.get(s, 0.0), 1.0)
                         self.counters.inc("frames_tracked")
                         out += self._emit(s, self._boot_stamps.get(s, 0.0), poses[s], 1.0)
                     self._boot_stamps.clear()
@@ -325,8 +335,37 @@ class TrackerCore(ServiceCore):
             self.waiting.popitem(last=False)
             res = fe.track(seq, np.asarray(f.rgb), extra_depth=self._extra_depth())
             out += self._answer(f, res)
+            if res.need_keyframe and not res.lost and self.opts.republish:
+                out += self._republish_refined()
         self.counters.set("waiting_frames", len(self.waiting))
         return out
+
+    def _republish_refined(self) -> list[Output]:
+        """Poses of frames already answered that the front end's bundle adjustment has moved
+        (by more than ``republish_min_m`` / ``republish_min_deg``), published again."""
+        from fmapping.tracking.direct import pose_distance
+
+        out: list[Output] = []
+        for s, c2w in sorted(self.mono.poses().items()):
+            old, pub = self.own_poses.get(s), self.published.get(s)
+            if old is None or pub is None:
+                continue
+            dt, dr = pose_distance(c2w, old)
+            if dt > self.opts.republish_min_m or dr > self.opts.republish_min_deg:
+                self.own_poses[s] = np.array(c2w)
+                self.counters.inc("republished")
+                out.append(("poses", P.Pose(seq=s, timestamp=pub[0], c2w=rigid_pose(c2w), source="tracker",
+                                            quality=pub[1])))
+        return out
+
+    def _keep_own(self, seq: int, c2w: np.ndarray, stamp: float, quality: float) -> None:
+        """Remember a tracked pose as published (at most ``max_poses``, oldest out)."""
+        self.own_poses[seq] = np.array(c2w)
+        self.published[seq] = (float(stamp), float(quality))
+        while len(self.own_poses) > self.opts.max_poses:
+            old = min(self.own_poses)
+            self.own_poses.pop(old)
+            self.published.pop(old, None)
 
     # ------------------------------------------------------------ tracking
     def _pose_of(self, seq: int) -> Optional[np.ndarray]:
@@ -514,11 +553,10 @@ class TrackerCore(ServiceCore):
             return self._emit(f.seq, f.timestamp, res.c2w, 0.0)
         if res.relocalised:
             self.counters.inc("relocalised")
-        self.own_poses[f.seq] = np.array(res.c2w)
+        quality = float(max(res.inlier_ratio, 1e-6))
+        self._keep_own(f.seq, res.c2w, f.timestamp, quality)
         self._motion_seq = f.seq
-        while len(self.own_poses) > self.opts.max_poses:
-            self.own_poses.pop(min(self.own_poses))
-        return self._emit(f.seq, f.timestamp, res.c2w, float(max(res.inlier_ratio, 1e-6)))
+        return self._emit(f.seq, f.timestamp, res.c2w, quality)
 
 
 def min_field_elements(cfg) -> int:
