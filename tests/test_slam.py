@@ -68,11 +68,16 @@ def test_slam_rgb_only_end_to_end(scene, tmp_path, monkeypatch):
     assert s["ate_sim3_rmse_m"] < 0.01, s
     assert s["ate_none_rmse_m"] < 0.02, s
     assert len(stats["windows"]) >= 2  # the mapper ran its init and on-the-fly windows
-    # the mapper trained on the bundle-adjusted poses: at the end it holds the written trajectory
+    # the mapper trained on the bundle-adjusted poses: at the end it holds the written trajectory, to the
+    # threshold below which a moved pose is not handed on (1 mm, 0.05 deg)
+    from fmapping.tracking.direct import pose_distance
+
     assert stats["output_scale"] == 1.0 and stats["mapper_pose_updates"] > 0
     held = mapper.frame_poses()
     assert len(held) == 40
-    np.testing.assert_allclose(np.stack([held[i] for i in range(40)]), est, atol=1e-5)
+    for i in range(40):
+        dt, dr = pose_distance(held[i], est[i])
+        assert dt <= 1e-3 + 1e-6 and dr <= 0.05 + 1e-4, (i, dt, dr)
     # the orientation-only fit is reported next to the position-aligned rotation error
     assert 0 <= s["ate_rot_fit_deg"] == stats["ate"]["se3"]["rot_fit_mean_deg"] < 5.0, s
 

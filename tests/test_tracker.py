@@ -509,3 +509,24 @@ def test_mono_adds_dense_depth_to_keyframes_only_where_it_agrees_with_the_landma
     assert sorted(p0) == sorted(p1)
     for k in p0:
         np.testing.assert_allclose(p1[k], p0[k], atol=1e-12)
+
+
+def test_moved_poses_hands_on_only_what_moved_beyond_the_thresholds():
+    from scipy.spatial.transform import Rotation
+
+    from fmapping.tracking.mono import moved_poses
+
+    base = np.eye(4)
+    base[:3, 3] = [0.5, -0.2, 1.0]
+
+    def moved(dx=0.0, deg=0.0):
+        p = base.copy()
+        p[:3, :3] = Rotation.from_rotvec([0.0, np.radians(deg), 0.0]).as_matrix()
+        p[0, 3] += dx
+        return p
+
+    held = {k: base.copy() for k in range(5)}
+    refined = {0: moved(dx=0.0005), 1: moved(dx=0.002), 2: moved(deg=0.02), 3: moved(deg=0.1), 9: moved(dx=1.0)}
+    out = moved_poses(held, refined, min_m=1e-3, min_deg=0.05)
+    assert sorted(out) == [1, 3]  # 0 and 2 moved too little; frame 9 is not held
+    np.testing.assert_array_equal(out[1], refined[1])

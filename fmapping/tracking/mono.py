@@ -80,6 +80,19 @@ class MonoConfig:
     pnp_inlier_px: float = 2.0
 
 
+def moved_poses(held: dict, refined: dict, min_m: float = 1e-3, min_deg: float = 0.05) -> dict:
+    """The entries of ``refined`` ({frame: c2w}) whose frame is in ``held`` and whose pose moved from
+    the held one by more than ``min_m`` metres or ``min_deg`` degrees: the poses worth handing on
+    after a bundle adjustment (to a mapper, over the wire)."""
+    out = {}
+    for k, c2w in refined.items():
+        if k in held:
+            dt, dr = pose_distance(held[k], c2w)
+            if dt > min_m or dr > min_deg:
+                out[k] = c2w
+    return out
+
+
 def _parallax_deg(c2w_a: np.ndarray, c2w_b: np.ndarray, world: np.ndarray) -> np.ndarray:
     """Angle (degrees) between the rays from the two camera centres to each world point (N, 3)."""
     ra = world - c2w_a[:3, 3]

@@ -343,19 +343,16 @@ class TrackerCore(ServiceCore):
     def _republish_refined(self) -> list[Output]:
         """Poses of frames already answered that the front end's bundle adjustment has moved
         (by more than ``republish_min_m`` / ``republish_min_deg``), published again."""
-        from fmapping.tracking.direct import pose_distance
+        from fmapping.tracking.mono import moved_poses
 
         out: list[Output] = []
-        for s, c2w in sorted(self.mono.poses().items()):
-            old, pub = self.own_poses.get(s), self.published.get(s)
-            if old is None or pub is None:
-                continue
-            dt, dr = pose_distance(c2w, old)
-            if dt > self.opts.republish_min_m or dr > self.opts.republish_min_deg:
-                self.own_poses[s] = np.array(c2w)
-                self.counters.inc("republished")
-                out.append(("poses", P.Pose(seq=s, timestamp=pub[0], c2w=rigid_pose(c2w), source="tracker",
-                                            quality=pub[1])))
+        moved = moved_poses(self.own_poses, self.mono.poses(), self.opts.republish_min_m, self.opts.republish_min_deg)
+        for s, c2w in sorted(moved.items()):
+            stamp, quality = self.published[s]
+            self.own_poses[s] = np.array(c2w)
+            self.counters.inc("republished")
+            out.append(("poses", P.Pose(seq=s, timestamp=stamp, c2w=rigid_pose(c2w), source="tracker",
+                                        quality=quality)))
         return out
 
     def _keep_own(self, seq: int, c2w: np.ndarray, stamp: float, quality: float) -> None:
