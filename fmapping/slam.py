@@ -21,10 +21,10 @@ Pose sources (``args.poses``):
   where it agrees with the landmarks); keyframes are refined by a windowed bundle
   adjustment. The mapper receives the tracked poses (its init pose optimisation is
   off unless ``slam.mapper_refines_init``), and after each keyframe's bundle adjustment
-  the poses it moved (``slam.mapper_follows_ba``, :meth:`Mapper.set_poses`). ``slam.frontend: map`` is the paper-style
-  alternative: constant-depth bootstrap guesses refined by the mapper's init, then
-  tracking against depth rendered from the map only (with init checks, retries and a
-  constant-depth fallback). With ``--use-depth`` the sensor depth replaces the
+  the poses it moved (``slam.mapper_follows_ba``, :meth:`Mapper.set_poses`).
+  ``slam.frontend: map`` is the paper-style alternative: constant-depth bootstrap
+  guesses refined by the mapper's init, then tracking against depth rendered from the
+  map only (with init checks, retries and a constant-depth fallback). With ``--use-depth`` the sensor depth replaces the
   rendered depth for the references and supervises the mapper (RGB-D mode).
   ``slam.tracking: render_compare`` swaps the direct alignment of the map front end
   for render-and-compare through the field (slow; for comparison).

@@ -14,10 +14,9 @@ frames to the mapper in order and returns the messages to publish:
 Pose sources: ``gt`` / ``external`` / ``tracker`` (key ``poses/<source>``). Given poses are
 trusted, as by ``fmapping map`` and ``fmapping slam`` (``optimize_init_poses`` off). A later pose
 for a frame already integrated replaces its pose (``refined_poses``; the mono tracker sends the
-poses its bundle adjustment moved). Before the
-map is initialised a frame may enter without a pose when ``unposed_init`` is on (the mapper
-then guesses and optimises its init poses, the first ``anchor_frames`` fixed by the anchor
-source): that is for the tracker's ``map`` front end, which cannot track before there is a
+poses its bundle adjustment moved). Before the map is initialised a frame may enter
+without a pose when ``unposed_init`` is on (the mapper then guesses and optimises its init
+poses, the first ``anchor_frames`` fixed by the anchor source): that is for the tracker's ``map`` front end, which cannot track before there is a
 map; the default ``mono`` tracker poses every frame itself. A frame waits for its pose;
 when more than ``max_pending`` frames wait, the oldest is dropped (``frames_without_pose``), and so is a frame whose pose has not come
 within ``pose_timeout`` seconds (a dead or restarted producer). The acknowledgement (``ack``) is the
