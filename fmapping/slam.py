@@ -511,7 +511,7 @@ class SlamRun:
             if not r.lost or cfg.feed_lost_frames:
                 self._after_window(self._add_to_mapper(i, f.rgb, r.c2w, f.timestamp, f.depth))
             if r.need_keyframe and cfg.mapper_follows_ba:
-                self._push_refined_poses(fe.poses())
+                self._push_refined_poses(fe.poses(window_only=True))
         # BA-refined poses of every tracked frame
         for k, p in fe.poses().items():
             self.est[k] = p

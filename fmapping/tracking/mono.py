@@ -587,9 +587,12 @@ class MonoFrontend:
     def keyframe_poses(self) -> dict:
         return {k: p.copy() for k, p in self._kf_pose.items()}
 
-    def poses(self) -> dict:
-        """Every tracked frame's pose, moved with its bundle-adjusted keyframe."""
-        return {i: orthonormalize(self._kf_pose[k] @ rel) for i, (k, rel) in self._rel.items() if k in self._kf_pose}
+    def poses(self, window_only: bool = False) -> dict:
+        """Every tracked frame's pose, moved with its bundle-adjusted keyframe. With ``window_only``
+        just the frames of the keyframes in the current BA window: the only ones the last BA moved."""
+        keep = set(self._window) if window_only else self._kf_pose
+        return {i: orthonormalize(self._kf_pose[k] @ rel) for i, (k, rel) in self._rel.items()
+                if k in keep and k in self._kf_pose}
 
     def landmarks(self) -> np.ndarray:
         return np.stack(self._lm) if self._lm else np.zeros((0, 3))

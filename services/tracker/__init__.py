@@ -346,7 +346,8 @@ class TrackerCore(ServiceCore):
         from fmapping.tracking.mono import moved_poses
 
         out: list[Output] = []
-        moved = moved_poses(self.own_poses, self.mono.poses(), self.opts.republish_min_m, self.opts.republish_min_deg)
+        moved = moved_poses(self.own_poses, self.mono.poses(window_only=True), self.opts.republish_min_m,
+                            self.opts.republish_min_deg)
         for s, c2w in sorted(moved.items()):
             stamp, quality = self.published[s]
             self.own_poses[s] = np.array(c2w)
