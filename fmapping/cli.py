@@ -16,6 +16,8 @@ import json
 import sys
 from typing import Optional, Sequence
 
+from fmapping.runtime import retain_freed_memory
+
 
 def _add_data_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", required=True, help="dataset folder (TUM, Replica, 7-Scenes, NeRF transforms.json, fmapping synth)")
@@ -163,6 +165,7 @@ COMMANDS = {
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
+    retain_freed_memory()
     try:
         return COMMANDS[args.command](args) or 0
     except (FileNotFoundError, ValueError) as e:  # bad input: one clear line, no traceback

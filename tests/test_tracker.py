@@ -325,6 +325,43 @@ def test_reprojection_jacobians_match_finite_differences():
         np.testing.assert_allclose(jx[:, :, k], num, rtol=1e-6, atol=1e-6)
 
 
+def test_schur_step_matches_dense_normal_equations():
+    """The BA's Schur-complement step against the full (poses + points) damped normal equations
+    built from a dense Jacobian and solved directly."""
+    from fmapping.tracking.ba import damped_step, normal_equations, reprojection_jacobians
+
+    cam = PinholeCamera(250.0, 240.0, 160.0, 120.0, 320, 240)
+    rng = np.random.default_rng(11)
+    n_pose, n_pt = 5, 40
+    fixed = {0, 2}
+    t = np.stack([exp_se3(rng.normal(size=6) * 0.1) for _ in range(n_pose)])
+    x = rng.normal(size=(n_pt, 3)) + [0.0, 0.0, 4.0]
+    pairs = {(int(k), p) for p in range(n_pt) for k in rng.choice(n_pose, rng.integers(2, 5), replace=False)}
+    kf, pt = np.array(sorted(pairs)).T
+    r = rng.normal(size=(len(kf), 2))
+    w = rng.uniform(0.2, 1.0, len(kf))
+    jp, jx = reprojection_jacobians(cam, t[kf], x[pt])
+    free = [i for i in range(n_pose) if i not in fixed]
+    col = np.full(n_pose, -1)
+    col[free] = np.arange(len(free))
+    lam = 0.05
+    ne = normal_equations(jp, jx, r, w, col[kf], pt, len(free), n_pt)
+    dp, dx = damped_step(ne, lam)
+
+    n_var = 6 * len(free) + 3 * n_pt
+    jac = np.zeros((2 * len(kf), n_var))
+    for o in range(len(kf)):
+        if col[kf[o]] >= 0:
+            jac[2 * o:2 * o + 2, 6 * col[kf[o]]:6 * col[kf[o]] + 6] = jp[o]
+        jac[2 * o:2 * o + 2, 6 * len(free) + 3 * pt[o]:6 * len(free) + 3 * pt[o] + 3] = jx[o]
+    wr = np.repeat(w, 2)
+    h = jac.T @ (wr[:, None] * jac)
+    g = jac.T @ (wr * r.reshape(-1))
+    ref = np.linalg.solve(h + lam * np.diag(np.diag(h) + 1e-9), -g)
+    np.testing.assert_allclose(dp.reshape(-1), ref[:6 * len(free)], rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(dx.reshape(-1), ref[6 * len(free):], rtol=1e-7, atol=1e-9)
+
+
 def test_bundle_adjust_recovers_perturbed_geometry():
     from fmapping.tracking.ba import bundle_adjust
 
@@ -509,6 +546,57 @@ def test_mono_adds_dense_depth_to_keyframes_only_where_it_agrees_with_the_landma
     assert sorted(p0) == sorted(p1)
     for k in p0:
         np.testing.assert_allclose(p1[k], p0[k], atol=1e-12)
+
+
+@pytest.mark.parametrize("direct_fails_again", [False, True])
+def test_mono_recovers_a_frame_the_direct_alignment_loses_from_its_landmarks(room320, direct_fails_again):
+    """A frame the direct alignment loses gets its pose from the KLT-tracked landmarks (PnP +
+    RANSAC): then the direct alignment again from there, or, when that fails too, the PnP pose
+    and a new keyframe. Either way the frame is not lost. Measured: re-aligned, 4e-5 mm / 7e-7 deg
+    from the undisturbed run; PnP alone, 5.9 mm / 0.23 deg from the GT (undisturbed: 6.9 mm /
+    0.14 deg)."""
+    from fmapping.datasets import open_dataset
+    from fmapping.tracking.frontend import TrackResult
+    from fmapping.tracking.mono import MonoConfig, MonoFrontend
+
+    ds = open_dataset(room320)
+    g = [ds[i].c2w for i in range(len(ds))]
+    target = 21
+
+    def run(fail: bool):
+        fe = MonoFrontend(ds.camera, cfg=MonoConfig())
+        i = 0
+        while not fe.initialized:
+            fe.bootstrap(i, ds[i].rgb, g[0], lambda k: float(np.linalg.norm(g[k][:3, 3] - g[0][:3, 3])))
+            i += 1
+        real = fe.tracker.track
+        calls = []
+
+        def failing(rgb, c2w_guess=None):
+            calls.append(c2w_guess is not None)
+            if len(calls) == 1 or direct_fails_again:
+                return TrackResult(fe.tracker.predict(), True, False, False, float("nan"), 0.0, 0.0, 0, 0.0,
+                                   fe.tracker.reference.frame_index, "forced loss")
+            return real(rgb, c2w_guess)
+
+        for k in range(i, target + 1):
+            if fail and k == target:
+                fe.tracker.track = failing
+            res = fe.track(k, ds[k].rgb)
+            fe.tracker.track = real
+        return res, calls
+
+    ref, _ = run(False)
+    res, calls = run(True)
+    assert calls == [False, True]  # the lost alignment, then one from the PnP pose
+    assert not res.lost and res.relocalised and "PnP" in res.reason, res.reason
+    assert res.need_keyframe == direct_fails_again
+    if not direct_fails_again:  # re-aligned from the PnP pose: the undisturbed result
+        dt, dr = pose_distance(res.c2w, ref.c2w)
+        assert dt < 1e-5 and dr < 1e-3, (dt, dr)
+    else:  # PnP alone (then the new keyframe's BA): as close to the GT as the undisturbed run
+        dt, dr = pose_distance(res.c2w, g[target])
+        assert dt < 0.012 and dr < 0.4, (dt, dr)
 
 
 def test_moved_poses_hands_on_only_what_moved_beyond_the_thresholds():

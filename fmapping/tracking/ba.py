@@ -69,14 +69,87 @@ def _robust_cost(r2: np.ndarray, k: float) -> float:
     return float(np.sum(np.where(n <= k, 0.5 * r2, k * (n - 0.5 * k))))
 
 
+def block_sum(index: np.ndarray, blocks: np.ndarray, n: int) -> np.ndarray:
+    """``out[i] = sum of blocks[o] with index[o] == i`` for blocks (O, ...) -> (n, ...)."""
+    shape = blocks.shape[1:]
+    k = int(np.prod(shape))
+    flat = (np.asarray(index, np.int64)[:, None] * k + np.arange(k)).ravel()
+    return np.bincount(flat, weights=blocks.reshape(len(index), k).ravel(), minlength=n * k).reshape((n,) + shape)
+
+
+@dataclass
+class NormalEquations:
+    """Gauss-Newton normal equations of a BA problem in block form: free poses (6 each), points (3 each).
+
+    ``hpp`` (P, 6, 6) and ``hxx`` (M, 3, 3) are the block diagonals (an observation involves
+    one pose and one point), ``gp`` (P, 6) / ``gx`` (M, 3) the gradients, and the pose-point
+    coupling has one 6x3 block ``hpx`` per observation of a free pose (``pose_of``, ``point_of``)."""
+    hpp: np.ndarray
+    gp: np.ndarray
+    hxx: np.ndarray
+    gx: np.ndarray
+    hpx: np.ndarray
+    pose_of: np.ndarray
+    point_of: np.ndarray
+
+
+def _t(a: np.ndarray) -> np.ndarray:
+    return np.swapaxes(a, -1, -2)
+
+
+def normal_equations(jp: np.ndarray, jx: np.ndarray, r: np.ndarray, w: np.ndarray, pose_col: np.ndarray,
+                     point: np.ndarray, n_free: int, n_points: int) -> NormalEquations:
+    """Weighted normal equations from per-observation Jacobians ``jp`` (O, 2, 6), ``jx`` (O, 2, 3),
+    residuals ``r`` (O, 2), weights ``w`` (O,); ``pose_col`` is the free-pose column of each
+    observation (-1: a fixed pose, which contributes to the points only)."""
+    jxw_t = _t(jx * w[:, None, None])  # (O, 3, 2)
+    hxx = block_sum(point, jxw_t @ jx, n_points)
+    gx = block_sum(point, (jxw_t @ r[:, :, None])[..., 0], n_points)
+    fo = pose_col >= 0
+    jpw_t = _t(jp[fo] * w[fo, None, None])  # (F, 6, 2)
+    hpp = block_sum(pose_col[fo], jpw_t @ jp[fo], n_free)
+    gp = block_sum(pose_col[fo], (jpw_t @ r[fo, :, None])[..., 0], n_free)
+    return NormalEquations(hpp, gp, hxx, gx, jpw_t @ jx[fo], pose_col[fo], point[fo])
+
+
+def damped_step(ne: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray]:
+    """Solve the Levenberg-Marquardt system (diagonal scaled by ``1 + lam``) for the pose and point
+    updates, the points eliminated by the Schur complement ``S = Hpp - Hpx Hxx^-1 Hxp``.
+    ``Hpx`` is scattered into a dense (6P, 3M) matrix so that S is one matrix product.
+    Returns (dp (P, 6), dx (M, 3)); raises ``np.linalg.LinAlgError`` when S is singular."""
+    nf, m = len(ne.hpp), len(ne.hxx)
+    hxx_d = ne.hxx + lam * np.eye(3) * (np.einsum("mii->mi", ne.hxx)[:, :, None] + 1e-9)
+    hinv = np.linalg.inv(hxx_d)
+    if nf == 0:
+        return np.zeros((0, 6)), -(hinv @ ne.gx[:, :, None])[..., 0]
+    rows = 6 * ne.pose_of[:, None, None] + np.arange(6)[None, :, None]
+    cols = 3 * ne.point_of[:, None, None] + np.arange(3)[None, None, :]
+    at = (rows * (3 * m) + cols).ravel()
+    size = 6 * nf * 3 * m
+
+    def dense(blocks):
+        return np.bincount(at, weights=blocks.ravel(), minlength=size).reshape(6 * nf, 3 * m)
+
+    hpx = dense(ne.hpx)
+    hpx_hinv = dense(ne.hpx @ hinv[ne.point_of])  # Hpx Hxx^-1 (Hxx is block diagonal)
+    schur = -(hpx_hinv @ hpx.T)
+    hpp_d = ne.hpp + lam * np.eye(6) * (np.einsum("pii->pi", ne.hpp)[:, :, None] + 1e-9)
+    for a in range(nf):
+        schur[6 * a:6 * a + 6, 6 * a:6 * a + 6] += hpp_d[a]
+    rhs = -ne.gp.reshape(-1) + hpx_hinv @ ne.gx.reshape(-1)
+    dp = np.linalg.solve(schur, rhs)
+    dx = -(hinv @ (ne.gx + (hpx.T @ dp).reshape(m, 3))[:, :, None])[..., 0]
+    return dp.reshape(nf, 6), dx
+
+
 def bundle_adjust(camera: PinholeCamera, poses_c2w: Sequence[np.ndarray], fixed: Sequence[int], points: np.ndarray,
                   obs_kf: np.ndarray, obs_pt: np.ndarray, obs_uv: np.ndarray, huber_px: float = 1.5,
                   max_nfev: int = 15) -> BAResult:
     """Refine the non-``fixed`` poses and all ``points`` from observations (keyframe index, point index, pixel).
 
     Levenberg-Marquardt with Huber weights (IRLS); each iteration eliminates the points
-    (Schur complement, 3x3 blocks) and solves the small dense pose system. ``max_nfev``
-    bounds the number of residual evaluations.
+    (:func:`damped_step`) and solves the small dense pose system. ``max_nfev`` bounds the
+    number of residual evaluations.
     """
     k = len(poses_c2w)
     obs_kf = np.asarray(obs_kf, np.int64)
@@ -84,12 +157,10 @@ def bundle_adjust(camera: PinholeCamera, poses_c2w: Sequence[np.ndarray], fixed:
     obs_uv = np.asarray(obs_uv, np.float64)
     t = np.stack([inv_pose(np.asarray(p, np.float64)) for p in poses_c2w])
     x = np.asarray(points, np.float64).copy()
-    m = len(x)
     fixed = set(int(f) for f in fixed)
     free = [i for i in range(k) if i not in fixed]
     col = np.full(k, -1, np.int64)
     col[free] = np.arange(len(free))
-    nf = len(free)
     oc = col[obs_kf]  # free-pose column of each observation (-1: fixed)
 
     def residuals(t_, x_):
@@ -102,46 +173,18 @@ def bundle_adjust(camera: PinholeCamera, poses_c2w: Sequence[np.ndarray], fixed:
     lam = 1e-3
     nfev = 1
     while nfev < max_nfev:
-        w = _huber_w(r2, huber_px)
         jp, jx = reprojection_jacobians(camera, t[obs_kf], x[obs_pt])
-        jxw = jx * w[:, None, None]
-        hxx = np.zeros((m, 3, 3))
-        np.add.at(hxx, obs_pt, np.einsum("oai,oaj->oij", jxw, jx))
-        gx = np.zeros((m, 3))
-        np.add.at(gx, obs_pt, np.einsum("oai,oa->oi", jxw, r))
-        hpp = np.zeros((nf, 6, 6))
-        gp = np.zeros((nf, 6))
-        wmat = np.zeros((nf, 6, m, 3))  # pose-point coupling blocks
-        fo = oc >= 0
-        if nf and fo.any():
-            jpw = jp[fo] * w[fo, None, None]
-            np.add.at(hpp, oc[fo], np.einsum("oai,oaj->oij", jpw, jp[fo]))
-            np.add.at(gp, oc[fo], np.einsum("oai,oa->oi", jpw, r[fo]))
-            np.add.at(wmat, (oc[fo], slice(None), obs_pt[fo]), np.einsum("oai,oaj->oij", jpw, jx[fo]))
+        ne = normal_equations(jp, jx, r, _huber_w(r2, huber_px), oc, obs_pt, len(free), len(x))
         improved = False
         while nfev < max_nfev:
-            hxx_d = hxx + lam * (np.eye(3) * (np.einsum("mii->mi", hxx)[:, :, None] + 1e-9))
-            hinv = np.linalg.inv(hxx_d)
-            if nf:
-                big_h = np.zeros((nf * 6, nf * 6))
-                for a in range(nf):
-                    big_h[6 * a:6 * a + 6, 6 * a:6 * a + 6] = hpp[a] + lam * np.diag(np.diag(hpp[a]) + 1e-9)
-                wf = wmat.reshape(nf * 6, m, 3)
-                wh = np.einsum("pmi,mij->pmj", wf, hinv)
-                schur = big_h - np.einsum("pmj,qmj->pq", wh, wf)
-                rhs = -gp.reshape(-1) + np.einsum("pmj,mj->p", wh, gx)
-                try:
-                    dp = np.linalg.solve(schur, rhs)
-                except np.linalg.LinAlgError:
-                    lam *= 10
-                    continue
-                dx = -np.einsum("mij,mj->mi", hinv, gx + np.einsum("pmi,p->mi", wf, dp))
-            else:
-                dp = np.zeros(0)
-                dx = -np.einsum("mij,mj->mi", hinv, gx)
+            try:
+                dp, dx = damped_step(ne, lam)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
             t_new = t.copy()
             for a, pi in enumerate(free):
-                t_new[pi] = exp_se3(dp[6 * a:6 * a + 6]) @ t[pi]
+                t_new[pi] = exp_se3(dp[a]) @ t[pi]
             x_new = x + dx
             r_new, r2_new = residuals(t_new, x_new)
             nfev += 1

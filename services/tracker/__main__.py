@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 
+from fmapping.runtime import limit_blas_threads, retain_freed_memory
 from services.common import (Service, add_common_args, query_latest, run_main, service_parser, set_torch_threads,
                              setup_logging)
 from services.tracker import TrackerCore, TrackerServiceOptions, load_tracker_config
@@ -33,6 +34,8 @@ def main(argv=None, session=None, keys=None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.log_level, "tracker")
     set_torch_threads(args.threads)
+    retain_freed_memory()  # the numpy bundle adjustment: reuse freed temporaries, and one BLAS thread next
+    limit_blas_threads(1)  # to the other services on the same cores (fmapping.runtime)
     cfg = load_tracker_config(args.config)
     opts = TrackerServiceOptions(max_buffer=args.max_buffer, use_depth=args.use_depth, frontend=args.frontend,
                                  anchor_source=args.anchor).validate()

@@ -1,0 +1,62 @@
+"""Process-wide numeric runtime settings for numpy-heavy loops (the tracker's bundle adjustment).
+
+**Allocator.** glibc returns large freed blocks to the kernel (``mmap`` for blocks over 128 KiB, heap
+trimming above a threshold), so every fresh multi-megabyte numpy temporary page-faults
+again; on the VMs we run on that cost is of the order of the arithmetic itself
+(``bench/tracking.py``, ``ba_allocator``). :func:`retain_freed_memory` raises both
+thresholds with ``mallopt`` so freed memory is reused: the resident size stays at its peak
+instead. torch has its own caching allocator and is not affected.
+
+**BLAS threads.** numpy's OpenBLAS starts one thread per core. Next to the other services
+on the same cores its threads compete for them and the tracker falls behind (measured in
+``bench/system.py`` at 10 fps: median pose latency 0.5-1.9 s with them, 0.03 s with one
+thread), while one thread is as fast for the bundle adjustment's matrices.
+:func:`limit_blas_threads` sets the pool at run time (threadpoolctl).
+
+The ``fmapping`` CLI retains freed memory; the tracker service does both at start. Both are
+no-ops (returning False) where the library in question is absent.
+"""
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+
+M_TRIM_THRESHOLD = -1  # glibc <malloc.h>
+M_MMAP_THRESHOLD = -3
+DEFAULT_THRESHOLD = 128 * 1024  # glibc's static default of both
+MMAP_THRESHOLD_MAX = 32 * 1024 * 1024  # glibc's largest M_MMAP_THRESHOLD on 64-bit
+RETAINED_TRIM = 512 * 1024 * 1024
+
+
+def _libc():
+    name = ctypes.util.find_library("c")
+    if not name:
+        return None
+    try:
+        lib = ctypes.CDLL(name)
+        return lib if hasattr(lib, "mallopt") else None
+    except OSError:
+        return None
+
+
+def retain_freed_memory(on: bool = True) -> bool:
+    """Keep freed blocks up to 32 MiB (and up to 512 MiB at the heap's top) for reuse
+    (``on``), or go back to glibc's static defaults (``on=False``). True when applied."""
+    lib = _libc()
+    if lib is None:
+        return False
+    mmap_t, trim_t = (MMAP_THRESHOLD_MAX, RETAINED_TRIM) if on else (DEFAULT_THRESHOLD, DEFAULT_THRESHOLD)
+    return bool(lib.mallopt(M_MMAP_THRESHOLD, mmap_t)) and bool(lib.mallopt(M_TRIM_THRESHOLD, trim_t))
+
+
+def limit_blas_threads(n: int = 1) -> bool:
+    """Limit the BLAS thread pools loaded so far (numpy's OpenBLAS) to ``n`` threads. True when
+    a pool was limited."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    import numpy  # noqa: F401  (loads its BLAS)
+
+    if not any(i.get("user_api") == "blas" for i in threadpool_info()):
+        return False
+    threadpool_limits(limits=n, user_api="blas")
+    return True
