@@ -683,6 +683,7 @@ def run_slam(args) -> dict:
         "frames": len(ds),
         "frames_mapped": len(run.fid_of),
         "tracking_loss_events": len(run.loss_events),
+        "relocalised_frames": sum(bool(v.get("relocalised")) for v in run.track_info.values()),
         "tracking_ms_median": float(np.median(track_ms_after_init)) if len(track_ms_after_init) else
         (float(np.median(ms)) if len(ms) else None),
         "tracking_ms_min": float(np.min(track_ms_after_init)) if len(track_ms_after_init) else None,

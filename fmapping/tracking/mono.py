@@ -11,7 +11,10 @@ RGB-only tracking before (and independently of) the neural map:
    are then aligned photometrically to frame 0 with the triangulated depth.
 2. **Tracking.** Every frame is aligned by :class:`~fmapping.tracking.frontend.DirectTracker`
    to the current keyframe (sparse depth at tracked corners); KLT tracks are
-   carried along from frame to frame.
+   carried along from frame to frame. A frame the alignment loses (motion blur, a
+   blurred keyframe) gets its pose from the tracked landmarks (PnP + RANSAC) and is
+   aligned again from there; if that fails too, the PnP pose stands and the frame
+   becomes a keyframe. Only when PnP fails as well does the frame count as lost.
 3. **Keyframes.** When the tracker asks for one, tracks with a landmark add an
    observation, tracks without one are triangulated between their first keyframe
    and the new one; then a windowed bundle adjustment (last ``window`` keyframes,
@@ -26,6 +29,7 @@ returns them moved with the bundle-adjusted keyframes. Poses are camera-to-world
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Optional
@@ -80,6 +84,7 @@ class MonoConfig:
     reinit_after: int = 3  # consecutive lost frames after which the current frame becomes a keyframe
     #                        with a constant-depth plane at the last median depth (reported as "reinit")
     pnp_min_points: int = 30
+    pnp_recovery: bool = True  # a frame the direct alignment loses gets its pose from the landmarks (PnP + RANSAC)
     pnp_inlier_px: float = 2.0
 
 
@@ -324,6 +329,8 @@ class MonoFrontend:
         gray = to_u8(rgb)
         res = self.tracker.track(rgb)
         self._klt(gray)
+        if res.lost and self.cfg.pnp_recovery:
+            res = self._recover(rgb, res)
         if res.lost:
             self._lost_run += 1
             if self._lost_run >= self.cfg.reinit_after:
@@ -389,6 +396,49 @@ class MonoFrontend:
         tr.uv_kf = tr.uv.astype(np.float32).copy()
         self._tracks = tr
         self._kf_gray = gray
+
+    def _recover(self, rgb: np.ndarray, lost: TrackResult) -> TrackResult:
+        """A frame the direct alignment lost: the pose from the tracked landmarks (PnP + RANSAC),
+        then the direct alignment again from there. When that still fails, the PnP pose is kept
+        and the frame becomes a keyframe (a fresh reference where the old one no longer fits)."""
+        pose = self._pnp_ransac()
+        if pose is None:
+            return lost
+        again = self.tracker.track(rgb, c2w_guess=pose)
+        why = f"lost ({lost.reason}); re-localised on the landmarks (PnP)"
+        if not again.lost:
+            again.relocalised, again.reason, again.ms = True, why, again.ms + lost.ms
+            return again
+        self.tracker.observe(pose)
+        return dataclasses.replace(lost, c2w=pose, lost=False, relocalised=True, need_keyframe=True,
+                                   reason=why + ", direct alignment still failing: new keyframe",
+                                   ms=lost.ms + again.ms)
+
+    def _pnp_ransac(self) -> Optional[np.ndarray]:
+        """Camera-to-world pose from the KLT-tracked landmarks alone (no prior), or None when fewer
+        than ``pnp_min_points`` inliers (within ``pnp_inlier_px`` per 320 pixels of image width) or
+        under half of the tracked landmarks agree."""
+        import cv2
+
+        tr = self._tracks
+        has = tr.lid >= 0
+        if has.sum() < self.cfg.pnp_min_points:
+            return None
+        x = np.stack([self._lm[i] for i in tr.lid[has]])
+        px = self.cfg.pnp_inlier_px * max(1.0, self.camera.width / 320.0)  # KLT noise grows with the resolution
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(x, tr.uv[has], self.camera.K, None, reprojectionError=px,
+                                                 iterationsCount=200, flags=cv2.SOLVEPNP_EPNP)
+        if not ok or inl is None or len(inl) < max(self.cfg.pnp_min_points, 0.5 * has.sum()):
+            return None
+        inl = inl.reshape(-1)
+        ok, rvec, tvec = cv2.solvePnP(x[inl], tr.uv[has][inl], self.camera.K, None, rvec, tvec,
+                                      useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok:
+            return None
+        w2c = np.eye(4)
+        w2c[:3, :3] = cv2.Rodrigues(rvec)[0]
+        w2c[:3, 3] = tvec.reshape(-1)
+        return orthonormalize(inv_pose(w2c))
 
     def _pnp(self, c2w: np.ndarray) -> Optional[np.ndarray]:
         """Refine a pose on the reprojection error of the tracked landmarks (inliers of the given pose)."""
