@@ -84,7 +84,7 @@ def mapping_section() -> str:
     if d is None:
         return "### Mapping (`bench/mapping.py`)\n\nnot run\n"
     s = d["settings"]
-    out = [f"### Mapping (`bench/mapping.py` -> `mapping.json`, `mapping.png`)\n",
+    out = ["### Mapping (`bench/mapping.py` -> `mapping.json`, `mapping.png`)\n",
            f"Synthetic rooms, {s['frames']} frames {s['size'][0]}x{s['size'][1]}, RGB only, GT poses, "
            f"{s['threads']} torch thread(s). Quality against the visible GT cloud (5 cm threshold). "
            "Targets: completion ratio >= 90 %, accuracy <= 5 cm, completion <= 3 cm, window update <= 2.0 s.\n"]
@@ -158,12 +158,26 @@ def tracking_section() -> str:
             if not isinstance(r, dict) or "ate" not in r:
                 continue
             a = r["ate"]
-            rows.append([data_name, method, fmt(r.get("fps_median"), 1), fmt(r.get("ms_median"), 1),
+            rows.append([data_name, method, fmt(r.get("fps_median"), 1), fmt(r.get("fps_mean"), 1),
+                         fmt(r.get("ms_median"), 1),
                          fmt(a["se3"]["rmse_m"] * 100), fmt(a["sim3"]["rmse_m"] * 100),
                          fmt(a["se3"].get("rot_first_mean_deg", a["none"].get("rot_err_mean_deg"))),
                          fmt(a["se3"].get("rot_fit_mean_deg")), r.get("lost", "-")])
-    out.append(table(["data", "method", "fps (median)", "ms median", "ATE SE3 cm", "ATE Sim3 cm",
-                      "rot. err deg (from first GT pose)", "rot. err deg (best-fit rotation)", "lost"], rows))
+    out.append(table(["data", "method", "fps (median)", "fps (mean, with BA)", "ms median", "ATE SE3 cm",
+                      "ATE Sim3 cm", "rot. err deg (from first GT pose)", "rot. err deg (best-fit rotation)", "lost"],
+                     rows))
+    for data_name, block in d.items():
+        pc = block.get("pose_consistency") if isinstance(block, dict) else None
+        if pc:
+            out.append(f"\nPose consistency with the images, {data_name} (KLT tracks between consecutive frames "
+                       "against the dataset depth moved by the poses; median px over the frame pairs): "
+                       + ", ".join(f"{k} {fmt(v['median_px'])} px" for k, v in pc.items()) + ".")
+    al = d.get("ba_allocator")
+    if al and "glibc_default" in al:
+        out.append("\nMono front end, synthetic, allocator (`fmapping.runtime`): mean ms per frame "
+                   f"{fmt(al['glibc_default'].get('ms_mean'), 1)} (BA median {fmt(al['glibc_default'].get('ba_ms_median'), 0)} ms) "
+                   f"with glibc's default, {fmt(al['retain_freed_memory'].get('ms_mean'), 1)} "
+                   f"(BA {fmt(al['retain_freed_memory'].get('ba_ms_median'), 0)} ms) with freed memory retained.")
     return "\n".join(out) + "\n"
 
 

@@ -28,6 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 KEYS = ("ate_sim3_rmse_m", "ate_se3_rmse_m", "ate_none_rmse_m", "ate_rot_fit_deg", "tracking_loss_events",
+        "relocalised_frames",
         "tracking_ms_median", "window_seconds_median", "accuracy_cm", "completion_cm", "completion_ratio",
         "accuracy_cm_sim3", "completion_cm_sim3", "completion_ratio_sim3", "frames_mapped", "total_seconds")
 
@@ -59,6 +60,9 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     import torch
 
+    from fmapping.runtime import retain_freed_memory
+
+    retain_freed_memory()  # as the fmapping CLI does
     torch.set_num_threads(a.threads)
     size = tuple(int(v) for v in a.size.lower().split("x"))
     res = {"machine": {"platform": platform.platform(), "python": platform.python_version(), "cpus": os.cpu_count(),

@@ -147,7 +147,8 @@ class Monitor:
     the arrival time of each frame's GT / tracker / mapper pose (monotonic seconds)."""
 
     def __init__(self, ns: str):
-        from services.common import free_port, payload_bytes, zenoh_config
+        from fmapping.launcher import free_port
+        from services.common import payload_bytes, zenoh_config
         import zenoh
 
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"

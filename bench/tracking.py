@@ -18,7 +18,18 @@ Methods (each on the same frames, one process, ``torch`` on ``--threads``):
   camera centres (rotation fitted to the tracks, no essential matrix);
 * ``kiss_icp``         - kiss-icp on back-projected depth.
 
-Per method: milliseconds per frame (min, median), frames per second at the median,
+``pose_consistency`` (frames with depth only): how well a set of poses explains the images.
+KLT tracks between consecutive frames, back-projected with the dataset's depth and moved with
+the poses, land a median of so many pixels from where KLT found them; for the ground truth
+and for each method's poses. A ground truth that does worse than an estimate limits what ATE
+and rotation error can tell apart.
+
+``ba_allocator``: the mono front end on the synthetic frames under glibc's default allocator,
+then with :func:`fmapping.runtime.retain_freed_memory` (on for the rest of the run, as in
+the CLI and the tracker service).
+
+Per method: milliseconds per frame (min, median, mean: a keyframe's bundle adjustment counts
+in its frame, so the mean is the rate a live stream must sustain), frames per second at the median,
 ATE RMSE (SE3, Sim3, unaligned) and mean rotation errors (after the position alignment,
 and the well-posed ``rot_first`` / ``rot_fit`` of :func:`fmapping.metrics.ate`), plus
 ``camera_offset``: a constant camera-frame rotation between estimate and GT fitted as a
@@ -108,10 +119,41 @@ def tum_camera_arg(root: Path) -> "str | None":
 def _timing(ms) -> dict:
     ms = np.asarray(ms, np.float64)
     return {"ms_min": float(ms.min()), "ms_median": float(np.median(ms)), "fps_median": float(1000 / np.median(ms)),
-            "frames": int(len(ms))}
+            "ms_mean": float(ms.mean()), "fps_mean": float(1000 / ms.mean()), "frames": int(len(ms))}
 
 
-def run_direct(frames, camera, depth_of) -> dict:
+def pose_consistency(frames, camera, poses: dict) -> dict:
+    """Per consecutive frame pair: median pixel distance between KLT tracks and the frame-k pixels
+    back-projected with frame k's depth and moved with the poses. ``poses``: name -> (N, 4, 4) array
+    over all frames. Returns name -> {median_px, mean_px} over the pairs."""
+    from fmapping.tracking.features import detect_corners, klt_track, to_u8
+    from fmapping.tracking.mono import MonoConfig
+
+    kc = MonoConfig().klt
+    k_inv = np.linalg.inv(camera.K)
+    grey = [to_u8(f.rgb) for f in frames]
+    pairs = []
+    for k in range(len(frames) - 1):
+        uv0 = detect_corners(grey[k], kc).astype(np.float64)
+        uv1, ok = klt_track(grey[k], grey[k + 1], uv0, kc)
+        ui = uv0[:, 0].round().astype(int).clip(0, camera.width - 1)
+        vi = uv0[:, 1].round().astype(int).clip(0, camera.height - 1)
+        z = frames[k].depth[vi, ui]
+        m = ok & (z > 0)
+        cam_pts = (np.c_[uv0[m], np.ones(m.sum())] @ k_inv.T) * z[m, None]
+        pairs.append((k, cam_pts, uv1[m].astype(np.float64)))
+    out = {}
+    for name, c2w in poses.items():
+        per_pair = []
+        for k, pts, uv1 in pairs:
+            rel = np.linalg.inv(c2w[k + 1]) @ c2w[k]
+            q = (pts @ rel[:3, :3].T + rel[:3, 3]) @ camera.K.T
+            per_pair.append(np.median(np.linalg.norm(q[:, :2] / q[:, 2:] - uv1, axis=1)))
+        out[name] = {"median_px": float(np.median(per_pair)), "mean_px": float(np.mean(per_pair))}
+    return out
+
+
+def run_direct(frames, camera, depth_of, poses_out: "dict | None" = None) -> dict:
     """``depth_of(i, c2w)`` -> depth image or uv callable for a new keyframe at frame i."""
     from fmapping.tracking.frontend import DirectTracker
 
@@ -137,6 +179,8 @@ def run_direct(frames, camera, depth_of) -> dict:
     out = {**_timing(ms), "lost": int(lost), "keyframes": kfs,
            "keyframe_ms_median": float(np.median(kf_ms)) if kf_ms else None,
            "ate": _ate(est, [f.c2w for f in frames])}
+    if poses_out is not None:
+        poses_out["direct_gt_depth"] = np.stack(est)
     return out
 
 
@@ -215,12 +259,30 @@ def run_render_compare(frames, camera, view, iterations: int) -> dict:
     return {**_timing(ms), "iterations": iterations, "ate": _ate(est, [f.c2w for f in frames])}
 
 
+def allocator_comparison(frames, camera) -> dict:
+    """The mono front end under glibc's default allocator, then with
+    :func:`fmapping.runtime.retain_freed_memory` (as the CLI and the tracker service run it; it
+    stays on for the rest of the bench). Default first: the setting cannot be undone exactly."""
+    from fmapping.runtime import retain_freed_memory
+
+    out = {}
+    for name in ("glibc_default", "retain_freed_memory"):
+        if name == "retain_freed_memory":
+            out["applied"] = retain_freed_memory()
+        print(f"[synthetic] mono, allocator {name} ...", flush=True)
+        r = run_mono(frames, camera)
+        out[name] = {k: r[k] for k in ("ms_min", "ms_median", "ba_ms_median")}
+        out[name]["ms_mean"] = r["ms_mean"]
+    return out
+
+
 def bench_dataset(name: str, frames, camera, args) -> dict:
     from fmapping.tracking.mapview import MapView
 
     res = {"frames": len(frames), "size": [camera.width, camera.height]}
     print(f"[{name}] direct, GT depth ...", flush=True)
-    res["direct_gt_depth"] = run_direct(frames, camera, lambda i, c2w: frames[i].depth)
+    est: dict = {}
+    res["direct_gt_depth"] = run_direct(frames, camera, lambda i, c2w: frames[i].depth, est)
     print(f"[{name}] mono (RGB only) ...", flush=True)
     res["mono"] = run_mono(frames, camera)
     print(f"[{name}] mono, bootstrap anchored with the GT baseline vector ...", flush=True)
@@ -228,6 +290,9 @@ def bench_dataset(name: str, frames, camera, args) -> dict:
     if frames[0].depth is not None:
         print(f"[{name}] kiss-icp ...", flush=True)
         res["kiss_icp"] = run_kiss(frames, camera)
+        print(f"[{name}] pose consistency with the images ...", flush=True)
+        res["pose_consistency"] = pose_consistency(frames, camera,
+                                                   {"groundtruth": np.stack([f.c2w for f in frames]), **est})
     if not args.no_map:
         print(f"[{name}] building a map from GT poses + depth ...", flush=True)
         m, secs = build_map(frames[: args.map_frames], camera, args.map_final_iters)
@@ -271,6 +336,7 @@ def main() -> int:
         generate_scene(syn, seed=0, frames=max(args.frames, 60), size=(320, 240))
     ds = open_dataset(syn, max_frames=args.frames)
     frames = [ds[i] for i in range(len(ds))]
+    results["ba_allocator"] = allocator_comparison(frames, ds.camera)
     results["synthetic_320x240"] = bench_dataset("synthetic", frames, ds.camera, args)
     if TUM.is_dir():
         cam_arg = {"auto": tum_camera_arg(TUM), "calib": None}.get(args.tum_camera, args.tum_camera)
@@ -285,7 +351,7 @@ def main() -> int:
         if not isinstance(d, dict):
             continue
         for meth, r in d.items():
-            if isinstance(r, dict) and "ms_median" in r:
+            if isinstance(r, dict) and "fps_median" in r:
                 a = r.get("ate", {})
                 print(f"{dname:22s} {meth:18s} ms min {r['ms_min']:7.1f} median {r['ms_median']:7.1f} "
                       f"({r['fps_median']:5.1f} fps)  ATE se3 {a.get('se3', {}).get('rmse_m', float('nan')):.4f} m "

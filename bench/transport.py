@@ -22,7 +22,6 @@ import argparse
 import json
 import os
 import platform
-import socket
 import struct
 import subprocess
 import sys
@@ -36,14 +35,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from fmapping import protocol as P  # noqa: E402
+from fmapping.launcher import free_port  # noqa: E402
 
 KEY = "fmapping/bench/{kind}"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _conf(listen=None, connect=None):

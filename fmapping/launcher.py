@@ -74,6 +74,7 @@ class LauncherOptions:
 
 
 def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port free right now on ``host`` (small race window until someone binds it)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind((host, 0))
         return s.getsockname()[1]

@@ -22,7 +22,6 @@ import json
 import logging
 import os
 import signal
-import socket
 import sys
 import threading
 import time
@@ -178,13 +177,6 @@ def open_session(args) -> tuple[zenoh.Session, P.Keys]:
     log.debug("zenoh: mode=%s listen=%s connect=%s multicast=%s ns=%s",
               net["mode"], net["listen"], net["connect"], net["multicast"], net["ns"])
     return zenoh.open(conf), keys
-
-
-def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port free right now on ``host`` (small race window until someone binds it)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
 
 
 def payload_bytes(sample) -> bytes:

@@ -19,6 +19,7 @@ import msgpack
 import numpy as np
 
 from fmapping import protocol as P
+from fmapping.launcher import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -94,9 +95,7 @@ def peer_conf(listen=None, connect=None):
 
 def loopback_endpoint() -> str:
     """``tcp/127.0.0.1:<a free port>``."""
-    from services import common as C
-
-    return f"tcp/127.0.0.1:{C.free_port()}"
+    return f"tcp/127.0.0.1:{free_port()}"
 
 
 def wait_matching(*pubs, timeout: float = 60.0, what: str = "subscriber") -> None:
