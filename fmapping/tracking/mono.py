@@ -397,6 +397,23 @@ class MonoFrontend:
         self._tracks = tr
         self._kf_gray = gray
 
+    def _tracked_landmarks(self) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """World points and current pixels of the tracks with a landmark (None below ``pnp_min_points``)."""
+        tr = self._tracks
+        has = tr.lid >= 0
+        if has.sum() < self.cfg.pnp_min_points:
+            return None
+        return np.stack([self._lm[i] for i in tr.lid[has]]), tr.uv[has]
+
+    @staticmethod
+    def _c2w_from_cv(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+        import cv2
+
+        w2c = np.eye(4)
+        w2c[:3, :3] = cv2.Rodrigues(rvec)[0]
+        w2c[:3, 3] = np.asarray(tvec).reshape(-1)
+        return orthonormalize(inv_pose(w2c))
+
     def _recover(self, rgb: np.ndarray, lost: TrackResult) -> TrackResult:
         """A frame the direct alignment lost: the pose from the tracked landmarks (PnP + RANSAC),
         then the direct alignment again from there. When that still fails, the PnP pose is kept
@@ -407,8 +424,7 @@ class MonoFrontend:
         again = self.tracker.track(rgb, c2w_guess=pose)
         why = f"lost ({lost.reason}); re-localised on the landmarks (PnP)"
         if not again.lost:
-            again.relocalised, again.reason, again.ms = True, why, again.ms + lost.ms
-            return again
+            return dataclasses.replace(again, relocalised=True, reason=why, ms=again.ms + lost.ms)
         self.tracker.observe(pose)
         return dataclasses.replace(lost, c2w=pose, lost=False, relocalised=True, need_keyframe=True,
                                    reason=why + ", direct alignment still failing: new keyframe",
@@ -420,36 +436,28 @@ class MonoFrontend:
         under half of the tracked landmarks agree."""
         import cv2
 
-        tr = self._tracks
-        has = tr.lid >= 0
-        if has.sum() < self.cfg.pnp_min_points:
+        found = self._tracked_landmarks()
+        if found is None:
             return None
-        x = np.stack([self._lm[i] for i in tr.lid[has]])
+        x, uv = found
         px = self.cfg.pnp_inlier_px * max(1.0, self.camera.width / 320.0)  # KLT noise grows with the resolution
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(x, tr.uv[has], self.camera.K, None, reprojectionError=px,
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(x, uv, self.camera.K, None, reprojectionError=px,
                                                  iterationsCount=200, flags=cv2.SOLVEPNP_EPNP)
-        if not ok or inl is None or len(inl) < max(self.cfg.pnp_min_points, 0.5 * has.sum()):
+        if not ok or inl is None or len(inl) < max(self.cfg.pnp_min_points, 0.5 * len(x)):
             return None
         inl = inl.reshape(-1)
-        ok, rvec, tvec = cv2.solvePnP(x[inl], tr.uv[has][inl], self.camera.K, None, rvec, tvec,
+        ok, rvec, tvec = cv2.solvePnP(x[inl], uv[inl], self.camera.K, None, rvec, tvec,
                                       useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
-        if not ok:
-            return None
-        w2c = np.eye(4)
-        w2c[:3, :3] = cv2.Rodrigues(rvec)[0]
-        w2c[:3, 3] = tvec.reshape(-1)
-        return orthonormalize(inv_pose(w2c))
+        return self._c2w_from_cv(rvec, tvec) if ok else None
 
     def _pnp(self, c2w: np.ndarray) -> Optional[np.ndarray]:
         """Refine a pose on the reprojection error of the tracked landmarks (inliers of the given pose)."""
         import cv2
 
-        tr = self._tracks
-        has = tr.lid >= 0
-        if has.sum() < self.cfg.pnp_min_points:
+        found = self._tracked_landmarks()
+        if found is None:
             return None
-        x = np.stack([self._lm[i] for i in tr.lid[has]])
-        uv = tr.uv[has]
+        x, uv = found
         w2c = inv_pose(c2w)
         y = x @ w2c[:3, :3].T + w2c[:3, 3]
         z = np.where(y[:, 2] > 1e-6, y[:, 2], 1e-6)
@@ -464,10 +472,7 @@ class MonoFrontend:
                                       flags=cv2.SOLVEPNP_ITERATIVE)
         if not ok:
             return None
-        out = np.eye(4)
-        out[:3, :3] = cv2.Rodrigues(rvec)[0]
-        out[:3, 3] = tvec.reshape(-1)
-        out = orthonormalize(inv_pose(out))
+        out = self._c2w_from_cv(rvec, tvec)
         dt, dr = pose_distance(out, c2w)
         scale = self.tracker.reference.median_depth if self.tracker.reference is not None else 1.0
         if dt > 0.1 * scale or dr > 5.0:
