@@ -19,7 +19,6 @@ no-ops (returning False) where the library in question is absent.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 
 M_TRIM_THRESHOLD = -1  # glibc <malloc.h>
 M_MMAP_THRESHOLD = -3
@@ -29,14 +28,12 @@ RETAINED_TRIM = 512 * 1024 * 1024
 
 
 def _libc():
-    name = ctypes.util.find_library("c")
-    if not name:
-        return None
+    """The C library already loaded in this process (no library search), if it has ``mallopt``."""
     try:
-        lib = ctypes.CDLL(name)
-        return lib if hasattr(lib, "mallopt") else None
+        lib = ctypes.CDLL(None)
     except OSError:
         return None
+    return lib if hasattr(lib, "mallopt") else None
 
 
 def retain_freed_memory(on: bool = True) -> bool:

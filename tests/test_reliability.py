@@ -527,7 +527,7 @@ def tracker_state(core) -> dict:
         "version": core.version, "map_seq": core.map_seq, "ack": core.ack, "ref_seq": core.ref_seq,
         "waiting": list(core.waiting), "recent": list(core.recent), "camera": dict(core.camera_dict),
         "mapper_poses": {k: v.tobytes() for k, v in core.mapper_poses.items()},
-        "own_poses": {k: v.tobytes() for k, v in core.own_poses.items()},
+        "own_poses": {k: (v.c2w.tobytes(), v.timestamp, v.quality) for k, v in core.own_poses.items()},
         "snapshot_pose": None if core.snapshot_pose is None else (core.snapshot_pose[0], core.snapshot_pose[1].tobytes()),
         "render_cfg": dict(core.render_cfg),
         "reference": None if core.tracker.reference is None else core.tracker.reference.frame_index,

@@ -48,6 +48,7 @@ def test_retained_memory_is_reused_without_page_faults():
 
 
 def test_limit_blas_threads_sets_numpys_pool_and_can_restore_it():
+    import numpy  # noqa: F401  (loads its BLAS before the pools are listed)
     from threadpoolctl import threadpool_info
 
     def blas_threads():

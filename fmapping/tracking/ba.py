@@ -83,7 +83,8 @@ class NormalEquations:
 
     ``hpp`` (P, 6, 6) and ``hxx`` (M, 3, 3) are the block diagonals (an observation involves
     one pose and one point), ``gp`` (P, 6) / ``gx`` (M, 3) the gradients, and the pose-point
-    coupling has one 6x3 block ``hpx`` per observation of a free pose (``pose_of``, ``point_of``)."""
+    coupling has one 6x3 block ``hpx`` per observation of a free pose (``pose_of``, ``point_of``),
+    also scattered into the dense (6P, 3M) matrix ``hpx_dense`` at the flat positions ``at``."""
     hpp: np.ndarray
     gp: np.ndarray
     hxx: np.ndarray
@@ -91,6 +92,17 @@ class NormalEquations:
     hpx: np.ndarray
     pose_of: np.ndarray
     point_of: np.ndarray
+    at: np.ndarray
+    hpx_dense: np.ndarray
+
+    def dense(self, blocks: np.ndarray) -> np.ndarray:
+        """Per-observation (6, 3) blocks scattered like ``hpx`` into a (6P, 3M) matrix."""
+        return _scatter(self.at, blocks, len(self.hpp), len(self.hxx))
+
+
+def _scatter(at: np.ndarray, blocks: np.ndarray, n_free: int, n_points: int) -> np.ndarray:
+    size = 6 * n_free * 3 * n_points
+    return np.bincount(at, weights=blocks.ravel(), minlength=size).reshape(6 * n_free, 3 * n_points)
 
 
 def _t(a: np.ndarray) -> np.ndarray:
@@ -109,29 +121,25 @@ def normal_equations(jp: np.ndarray, jx: np.ndarray, r: np.ndarray, w: np.ndarra
     jpw_t = _t(jp[fo] * w[fo, None, None])  # (F, 6, 2)
     hpp = block_sum(pose_col[fo], jpw_t @ jp[fo], n_free)
     gp = block_sum(pose_col[fo], (jpw_t @ r[fo, :, None])[..., 0], n_free)
-    return NormalEquations(hpp, gp, hxx, gx, jpw_t @ jx[fo], pose_col[fo], point[fo])
+    pose_of, point_of, hpx = pose_col[fo], point[fo], jpw_t @ jx[fo]
+    rows = 6 * pose_of[:, None, None] + np.arange(6)[None, :, None]
+    cols = 3 * point_of[:, None, None] + np.arange(3)[None, None, :]
+    at = (rows * (3 * n_points) + cols).ravel()
+    return NormalEquations(hpp, gp, hxx, gx, hpx, pose_of, point_of, at, _scatter(at, hpx, n_free, n_points))
 
 
 def damped_step(ne: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray]:
     """Solve the Levenberg-Marquardt system (diagonal scaled by ``1 + lam``) for the pose and point
-    updates, the points eliminated by the Schur complement ``S = Hpp - Hpx Hxx^-1 Hxp``.
-    ``Hpx`` is scattered into a dense (6P, 3M) matrix so that S is one matrix product.
+    updates, the points eliminated by the Schur complement ``S = Hpp - Hpx Hxx^-1 Hxp``, one
+    product of dense (6P, 3M) matrices (``NormalEquations.hpx_dense``).
     Returns (dp (P, 6), dx (M, 3)); raises ``np.linalg.LinAlgError`` when S is singular."""
     nf, m = len(ne.hpp), len(ne.hxx)
     hxx_d = ne.hxx + lam * np.eye(3) * (np.einsum("mii->mi", ne.hxx)[:, :, None] + 1e-9)
     hinv = np.linalg.inv(hxx_d)
     if nf == 0:
         return np.zeros((0, 6)), -(hinv @ ne.gx[:, :, None])[..., 0]
-    rows = 6 * ne.pose_of[:, None, None] + np.arange(6)[None, :, None]
-    cols = 3 * ne.point_of[:, None, None] + np.arange(3)[None, None, :]
-    at = (rows * (3 * m) + cols).ravel()
-    size = 6 * nf * 3 * m
-
-    def dense(blocks):
-        return np.bincount(at, weights=blocks.ravel(), minlength=size).reshape(6 * nf, 3 * m)
-
-    hpx = dense(ne.hpx)
-    hpx_hinv = dense(ne.hpx @ hinv[ne.point_of])  # Hpx Hxx^-1 (Hxx is block diagonal)
+    hpx = ne.hpx_dense
+    hpx_hinv = ne.dense(ne.hpx @ hinv[ne.point_of])  # Hpx Hxx^-1 (Hxx is block diagonal)
     schur = -(hpx_hinv @ hpx.T)
     hpp_d = ne.hpp + lam * np.eye(6) * (np.einsum("pii->pi", ne.hpp)[:, :, None] + 1e-9)
     for a in range(nf):

@@ -46,7 +46,7 @@ import logging
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Any, Optional
+from typing import Any, NamedTuple, Optional
 
 import numpy as np
 
@@ -83,6 +83,13 @@ class TrackerServiceOptions:
 Output = tuple[str, Any]
 
 
+class OwnPose(NamedTuple):
+    """A pose the tracker published for a frame (kept to republish it when the BA moves it)."""
+    c2w: np.ndarray
+    timestamp: float
+    quality: float
+
+
 class TrackerCore(ServiceCore):
     """See the module docstring. Single-threaded."""
 
@@ -110,8 +117,7 @@ class TrackerCore(ServiceCore):
         self.waiting: "OrderedDict[int, P.Frame]" = OrderedDict()  # frames to answer, in order
         self.recent: "OrderedDict[int, P.Frame]" = OrderedDict()  # images for references
         self.mapper_poses: dict[int, np.ndarray] = {}
-        self.own_poses: dict[int, np.ndarray] = {}  # tracked (not lost) poses
-        self.published: dict[int, tuple[float, float]] = {}  # own_poses' (timestamp, quality) as published
+        self.own_poses: dict[int, OwnPose] = {}  # tracked (not lost) poses, as published
         self.snapshot_pose: Optional[tuple[int, np.ndarray]] = None  # (frame_seq, c2w) of the newest snapshot
         self.last_seq = -1
         self.ref_seq = -1
@@ -233,12 +239,16 @@ class TrackerCore(ServiceCore):
         return self._remember(self.mapper_poses, p, "mapper_poses")
 
     def _remember(self, store: dict, p: P.Pose, counter: str) -> list[Output]:
-        """Keep pose ``p`` in ``store`` (at most ``max_poses``, oldest out), count it, move on."""
-        store[p.seq] = np.array(p.c2w)
-        while len(store) > self.opts.max_poses:
-            store.pop(min(store))
+        """Keep pose ``p`` in ``store``, count it, move on."""
+        self._bounded_put(store, p.seq, np.array(p.c2w))
         self.counters.inc(counter)
         return self._advance()
+
+    def _bounded_put(self, store: dict, seq: int, value) -> None:
+        """``store[seq] = value``, at most ``max_poses`` entries (the oldest frames go)."""
+        store[seq] = value
+        while len(store) > self.opts.max_poses:
+            store.pop(min(store))
 
     def reset(self) -> None:
         self.tracker = None
@@ -251,7 +261,6 @@ class TrackerCore(ServiceCore):
         self.recent.clear()
         self.mapper_poses.clear()
         self.own_poses.clear()
-        self.published.clear()
         self.snapshot_pose = None
         self.ref_seq = -1
         self._ref_target = None
@@ -346,24 +355,20 @@ class TrackerCore(ServiceCore):
         from fmapping.tracking.mono import moved_poses
 
         out: list[Output] = []
-        moved = moved_poses(self.own_poses, self.mono.poses(window_only=True), self.opts.republish_min_m,
-                            self.opts.republish_min_deg)
+        refined = self.mono.poses(window_only=True)
+        held = {s: self.own_poses[s].c2w for s in refined if s in self.own_poses}
+        moved = moved_poses(held, refined, self.opts.republish_min_m, self.opts.republish_min_deg)
         for s, c2w in sorted(moved.items()):
-            stamp, quality = self.published[s]
-            self.own_poses[s] = np.array(c2w)
+            was = self.own_poses[s]
+            self.own_poses[s] = was._replace(c2w=np.array(c2w))
             self.counters.inc("republished")
-            out.append(("poses", P.Pose(seq=s, timestamp=stamp, c2w=rigid_pose(c2w), source="tracker",
-                                        quality=quality)))
+            out.append(("poses", P.Pose(seq=s, timestamp=was.timestamp, c2w=rigid_pose(c2w), source="tracker",
+                                        quality=was.quality)))
         return out
 
     def _keep_own(self, seq: int, c2w: np.ndarray, stamp: float, quality: float) -> None:
-        """Remember a tracked pose as published (at most ``max_poses``, oldest out)."""
-        self.own_poses[seq] = np.array(c2w)
-        self.published[seq] = (float(stamp), float(quality))
-        while len(self.own_poses) > self.opts.max_poses:
-            old = min(self.own_poses)
-            self.own_poses.pop(old)
-            self.published.pop(old, None)
+        """Remember a tracked pose as published."""
+        self._bounded_put(self.own_poses, seq, OwnPose(np.array(c2w), float(stamp), float(quality)))
 
     # ------------------------------------------------------------ tracking
     def _pose_of(self, seq: int) -> Optional[np.ndarray]:
@@ -371,7 +376,8 @@ class TrackerCore(ServiceCore):
             return self.mapper_poses[seq]
         if self.snapshot_pose is not None and self.snapshot_pose[0] == seq:
             return self.snapshot_pose[1]
-        return self.own_poses.get(seq)
+        own = self.own_poses.get(seq)
+        return None if own is None else own.c2w
 
     def _reference_frame(self, target: int) -> Optional[int]:
         """``target`` when its pose is known (its image, or a render of the map when we never saw
@@ -398,7 +404,7 @@ class TrackerCore(ServiceCore):
         if self._motion_seq > target and hist:
             own, mapped = self.own_poses.get(target), self._pose_of(target)
             if own is not None and mapped is not None:
-                corr = mapped @ np.linalg.inv(own)
+                corr = mapped @ np.linalg.inv(own.c2w)
                 self.tracker.reset_motion([corr @ h for h in hist])
                 self.counters.inc("motion_rechained")
             return
