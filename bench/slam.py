@@ -4,8 +4,8 @@
     python bench/slam.py --seeds 0 --frames 60 --no-export
 
 Each run is :func:`fmapping.slam.run_slam` exactly as the CLI runs it (default config,
-scale anchored by the GT baseline of the bootstrap, world frame at the GT pose of frame 0),
-on a scene from :func:`fmapping.synthetic.generate_scene` (200 frames at 320x240 unless told).
+scale anchored by the GT baseline of the bootstrap and again at frame 14, world frame at
+the GT pose of frame 0), on a scene from :func:`fmapping.synthetic.generate_scene` (200 frames at 320x240 unless told).
 Reported per seed: ATE RMSE after SE3 and Sim3 alignment and unaligned, the orientation
 error after its best fit, tracking-loss events, tracking ms (median), mapping window seconds
 (median), and the map's accuracy / completion / completion ratio (5 cm) against the visible

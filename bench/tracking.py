@@ -13,7 +13,8 @@ Methods (each on the same frames, one process, ``torch`` on ``--threads``):
 * ``render_compare``   - Adam on se(3) through the same map (the paper-style path), from
   the previous estimate with a constant-velocity prediction;
 * ``mono``             - the RGB-only front end (two-view bootstrap, sparse depth, BA),
-  scale anchored with the GT baseline length of its bootstrap;
+  scale anchored with the GT baseline length of its bootstrap and again at frame 14;
+* ``mono_no_late_anchor`` - the same with the bootstrap's scale kept;
 * ``mono_anchor_position`` - the same with the bootstrap's baseline *vector* from the GT
   camera centres (rotation fitted to the tracks, no essential matrix);
 * ``kiss_icp``         - kiss-icp on back-projected depth.
@@ -22,7 +23,15 @@ Methods (each on the same frames, one process, ``torch`` on ``--threads``):
 KLT tracks between consecutive frames, back-projected with the dataset's depth and moved with
 the poses, land a median of so many pixels from where KLT found them; for the ground truth
 and for each method's poses. A ground truth that does worse than an estimate limits what ATE
-and rotation error can tell apart.
+and rotation error can tell apart (:mod:`fmapping.tracking.consistency`).
+
+``gt_camera_offset`` (frames with depth only): the constant rotation of the GT's camera frame
+(a hand-eye or principal-point error) that makes the GT explain tracks 10 and 15 frames long
+best, its spread over two halves of the pairs, and the rotation errors ``GT @ X`` itself has
+against the GT: the floor for any tracker that agrees with the images.
+
+``mono_spread``: the mono front end again on five copies of the frames with one grey level
+added to or taken from 5 % of the pixels; min / median / max of its ATE and rotation errors.
 
 ``ba_allocator``: the mono front end on the synthetic frames under glibc's default allocator,
 then with :func:`fmapping.runtime.retain_freed_memory` (on for the rest of the run, as in
@@ -126,30 +135,39 @@ def pose_consistency(frames, camera, poses: dict) -> dict:
     """Per consecutive frame pair: median pixel distance between KLT tracks and the frame-k pixels
     back-projected with frame k's depth and moved with the poses. ``poses``: name -> (N, 4, 4) array
     over all frames. Returns name -> {median_px, mean_px} over the pairs."""
-    from fmapping.tracking.features import detect_corners, klt_track, to_u8
-    from fmapping.tracking.mono import MonoConfig
+    from fmapping.tracking.consistency import depth_tracks, reprojection_px
 
-    kc = MonoConfig().klt
-    k_inv = np.linalg.inv(camera.K)
-    grey = [to_u8(f.rgb) for f in frames]
-    pairs = []
-    for k in range(len(frames) - 1):
-        uv0 = detect_corners(grey[k], kc).astype(np.float64)
-        uv1, ok = klt_track(grey[k], grey[k + 1], uv0, kc)
-        ui = uv0[:, 0].round().astype(int).clip(0, camera.width - 1)
-        vi = uv0[:, 1].round().astype(int).clip(0, camera.height - 1)
-        z = frames[k].depth[vi, ui]
-        m = ok & (z > 0)
-        cam_pts = (np.c_[uv0[m], np.ones(m.sum())] @ k_inv.T) * z[m, None]
-        pairs.append((k, cam_pts, uv1[m].astype(np.float64)))
-    out = {}
-    for name, c2w in poses.items():
-        per_pair = []
-        for k, pts, uv1 in pairs:
-            rel = np.linalg.inv(c2w[k + 1]) @ c2w[k]
-            q = (pts @ rel[:3, :3].T + rel[:3, 3]) @ camera.K.T
-            per_pair.append(np.median(np.linalg.norm(q[:, :2] / q[:, 2:] - uv1, axis=1)))
-        out[name] = {"median_px": float(np.median(per_pair)), "mean_px": float(np.mean(per_pair))}
+    pairs = depth_tracks([f.rgb for f in frames], [f.depth for f in frames], camera, steps=(1,))
+    return {name: reprojection_px(pairs, c2w, camera) for name, c2w in poses.items()}
+
+
+def gt_camera_offset(frames, camera, steps=(10, 15)) -> dict:
+    """The constant camera-frame rotation ``X`` that makes the GT explain the images best
+    (:func:`fmapping.tracking.consistency.fit_camera_rotation`, tracks ``steps`` frames apart),
+    fitted on all pairs and on the pairs of alternate start frames (its spread), about all
+    three axes and about x and z only. ``floor``: the rotation errors of ``GT @ X`` against the
+    GT, i.e. what a tracker that agrees with the images as well as ``GT @ X`` does would score."""
+    from scipy.spatial.transform import Rotation
+
+    from fmapping.metrics import ate
+    from fmapping.tracking.consistency import depth_tracks, fit_camera_rotation, reprojection_px
+
+    gt = np.stack([f.c2w for f in frames])
+    pairs = depth_tracks([f.rgb for f in frames], [f.depth for f in frames], camera, steps=steps, start_every=2)
+    out = {"steps": list(steps), "pairs": len(pairs), "tracks": int(sum(len(p.uv_b) for p in pairs)),
+           "gt_px": reprojection_px(pairs, gt, camera)["median_px"]}
+    for axes in ("xyz", "xz"):
+        x = fit_camera_rotation(pairs, gt, camera, axes)
+        halves = [fit_camera_rotation([p for p in pairs if (p.a // 2) % 2 == h], gt, camera, axes) for h in (0, 1)]
+        corrected = gt.copy()
+        corrected[:, :3, :3] = gt[:, :3, :3] @ x
+        a = ate(corrected, gt, "none")
+        out[axes] = {"rotvec_deg": [float(v) for v in np.degrees(Rotation.from_matrix(x).as_rotvec())],
+                     "halves_rotvec_deg": [[float(v) for v in np.degrees(Rotation.from_matrix(h).as_rotvec())]
+                                           for h in halves],
+                     "px_after": reprojection_px(pairs, gt, camera, x)["median_px"],
+                     "floor_rot_first_mean_deg": a["rot_first_mean_deg"],
+                     "floor_rot_fit_mean_deg": a["rot_fit_mean_deg"]}
     return out
 
 
@@ -184,12 +202,13 @@ def run_direct(frames, camera, depth_of, poses_out: "dict | None" = None) -> dic
     return out
 
 
-def run_mono(frames, camera, anchor_position: bool = False) -> dict:
+def run_mono(frames, camera, anchor_position: bool = False, cfg=None) -> dict:
     """RGB-only front end; the bootstrap's scale comes from the GT baseline length |t_k - t_0|
-    or, with ``anchor_position``, from the GT camera centres of frames 0 and k (baseline vector)."""
+    or, with ``anchor_position``, from the GT camera centres of frames 0 and k (baseline vector),
+    and is taken again from the GT baseline to frame 14 (``MonoConfig.late_anchor_frames``)."""
     from fmapping.tracking.mono import MonoFrontend
 
-    fe = MonoFrontend(camera)
+    fe = MonoFrontend(camera, cfg=cfg)
     g0 = frames[0].c2w
     anchor = lambda k: float(np.linalg.norm(frames[k].c2w[:3, 3] - g0[:3, 3]))  # noqa: E731
     position = (lambda k: frames[k].c2w[:3, 3]) if anchor_position else None  # noqa: E731
@@ -214,6 +233,38 @@ def run_mono(frames, camera, anchor_position: bool = False) -> dict:
             "ba_ms_median": float(np.median([b["ms"] for b in fe.ba_stats])) if fe.ba_stats else None,
             "reinit": list(fe.reinits),
             "ate": _ate([est[k] for k in ids], [frames[k].c2w for k in ids])}
+
+
+def perturbed(frames, seed: int, fraction: float = 0.05):
+    """The frames with one grey level added to or taken from ``fraction`` of the pixels (all
+    channels alike): far below sensor noise, so a method whose result moves with it is chaotic."""
+    import dataclasses
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for f in frames:
+        img = np.asarray(f.rgb)
+        d = (rng.random(img.shape[:2]) < fraction) * rng.choice([-1, 1], img.shape[:2])
+        if np.issubdtype(img.dtype, np.integer):
+            rgb = np.clip(img.astype(np.int16) + d[..., None], 0, 255).astype(img.dtype)
+        else:
+            rgb = np.clip(img + d[..., None] / 255.0, 0.0, 1.0).astype(img.dtype)
+        out.append(dataclasses.replace(f, rgb=rgb))
+    return out
+
+
+def mono_spread(frames, camera, seeds=(1, 2, 3, 4, 5)) -> dict:
+    """The mono front end on the frames as they are and on :func:`perturbed` copies: min,
+    median and max of its ATE and rotation errors (one run's figure is one draw of these)."""
+    runs = [run_mono(frames, camera)] + [run_mono(perturbed(frames, s), camera) for s in seeds]
+    keys = {"se3_cm": ("se3", "rmse_m", 100), "sim3_cm": ("sim3", "rmse_m", 100),
+            "rot_first_deg": ("none", "rot_first_mean_deg", 1), "rot_fit_deg": ("none", "rot_fit_mean_deg", 1)}
+    out: dict = {"runs": len(runs), "perturbation": "+-1 grey level on 5 % of the pixels", "seeds": list(seeds)}
+    for name, (align, key, mult) in keys.items():
+        v = np.array([r["ate"][align][key] * mult for r in runs if "ate" in r])
+        out[name] = {"min": float(v.min()), "median": float(np.median(v)), "max": float(v.max()),
+                     "values": [float(x) for x in v]}
+    return out
 
 
 def run_kiss(frames, camera) -> dict:
@@ -278,6 +329,7 @@ def allocator_comparison(frames, camera) -> dict:
 
 def bench_dataset(name: str, frames, camera, args) -> dict:
     from fmapping.tracking.mapview import MapView
+    from fmapping.tracking.mono import MonoConfig
 
     res = {"frames": len(frames), "size": [camera.width, camera.height]}
     print(f"[{name}] direct, GT depth ...", flush=True)
@@ -285,6 +337,10 @@ def bench_dataset(name: str, frames, camera, args) -> dict:
     res["direct_gt_depth"] = run_direct(frames, camera, lambda i, c2w: frames[i].depth, est)
     print(f"[{name}] mono (RGB only) ...", flush=True)
     res["mono"] = run_mono(frames, camera)
+    print(f"[{name}] mono, scale from the bootstrap alone ...", flush=True)
+    res["mono_no_late_anchor"] = run_mono(frames, camera, cfg=MonoConfig(late_anchor_frames=0))
+    print(f"[{name}] mono on perturbed copies of the frames ...", flush=True)
+    res["mono_spread"] = mono_spread(frames, camera)
     print(f"[{name}] mono, bootstrap anchored with the GT baseline vector ...", flush=True)
     res["mono_anchor_position"] = run_mono(frames, camera, anchor_position=True)
     if frames[0].depth is not None:
@@ -293,6 +349,8 @@ def bench_dataset(name: str, frames, camera, args) -> dict:
         print(f"[{name}] pose consistency with the images ...", flush=True)
         res["pose_consistency"] = pose_consistency(frames, camera,
                                                    {"groundtruth": np.stack([f.c2w for f in frames]), **est})
+        print(f"[{name}] camera-frame rotation of the GT against the images ...", flush=True)
+        res["gt_camera_offset"] = gt_camera_offset(frames, camera)
     if not args.no_map:
         print(f"[{name}] building a map from GT poses + depth ...", flush=True)
         m, secs = build_map(frames[: args.map_frames], camera, args.map_final_iters)

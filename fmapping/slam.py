@@ -36,10 +36,12 @@ Scale and world frame (monocular RGB has no metric scale), in this order:
 1. ground-truth poses in the dataset (``scale_anchor: auto|gt``): the world frame is
    the GT frame of frame 0 and the scale is the GT distance between frame 0 and the
    frame that completes the bootstrap (DIM-SLAM anchors its scale with the first GT
-   poses in the same spirit); with the map front end the same baseline is taken at
-   the end of the init window and the remaining factor after the mapper's init is
-   applied to everything written out (poses, map, mesh) as a similarity about frame 0.
-   Evaluate with SE(3) (or none).
+   poses in the same spirit), taken again between frames 0 and 14, the end of the
+   init window (``mono.late_anchor_frames``): the front end is rescaled about frame 0
+   then, and the mapper gets its first frames only after that, with the rescaled poses.
+   With the map front end the same baseline is taken at the end of the init window
+   and the remaining factor after the mapper's init is applied to everything written
+   out (poses, map, mesh) as a similarity about frame 0. Evaluate with SE(3) (or none).
 2. depth in the dataset (map front end, ``auto|depth``): the factor is the median
    ratio of sensor depth to rendered depth at the last init frame.
 3. otherwise the median scene depth of the bootstrap is ``mono.unit_depth`` (mono)
@@ -66,6 +68,7 @@ import numpy as np
 from fmapping.config import load_config, to_dict
 from fmapping.mapper import Mapper, MapperConfig
 from fmapping.pipeline import MESH_RESOLUTION, open_job_dataset, recon_stats, write_map_outputs, write_stats
+from fmapping.tracking.direct import scale_about
 from fmapping.tracking.frontend import DirectTracker, TrackerConfig
 from fmapping.tracking.mapview import MapView, MapViewConfig
 from fmapping.tracking.mono import MonoConfig, MonoFrontend, moved_poses
@@ -163,12 +166,6 @@ def bootstrap_poses(rgbs: list, camera, c2w0: np.ndarray, tcfg: TrackerConfig, d
             except ValueError:
                 pass
     return poses, info
-
-
-def scale_about(c2w: np.ndarray, center: np.ndarray, s: float) -> np.ndarray:
-    out = np.array(c2w, np.float64)
-    out[:3, 3] = center + s * (out[:3, 3] - center)
-    return out
 
 
 def _ate_block(est: np.ndarray, gt: list) -> Optional[dict]:
@@ -492,10 +489,24 @@ class SlamRun:
         if fe.init_info.get("scale_from") == "unit_depth":
             self.anchor = "none"
         self.mapper = self._new_mapper(cfg.mapper.init_frames)
+        held: list = []  # (frame, c2w) kept from the mapper until the late anchor has fixed the scale
+
+        def feed(f, c2w) -> None:
+            if fe.scale_pending:
+                held.append((f, c2w))
+                return
+            if held:  # the scale is fixed now: the held frames go to the mapper with their rescaled poses
+                poses, factor = fe.poses(), (fe.late_anchor or {}).get("factor", 1.0)
+                for g, p in held:
+                    self.est[g.index] = poses.get(g.index, scale_about(p, self.c2w0[:3, 3], factor))
+                    self._after_window(self._add_to_mapper(g.index, g.rgb, self.est[g.index], g.timestamp, g.depth))
+                held.clear()
+            self._after_window(self._add_to_mapper(f.index, f.rgb, c2w, f.timestamp, f.depth))
+
         for f in buf:
             self.est[f.index] = out[f.index]
             self.track_ms[f.index] = boot_ms if f.index else 0.0
-            self._after_window(self._add_to_mapper(f.index, f.rgb, out[f.index], f.timestamp, f.depth))
+            feed(f, out[f.index])
         for i in self._iter(range(i, n), "slam"):
             f = self.ds[i]
             # map depth for new keyframes; the front end uses it only where it agrees with the landmarks
@@ -509,12 +520,16 @@ class SlamRun:
                 self.loss_events.append({"frame": i, "reason": r.reason, "inlier_ratio": r.inlier_ratio,
                                          "reference": r.reference})
             if not r.lost or cfg.feed_lost_frames:
-                self._after_window(self._add_to_mapper(i, f.rgb, r.c2w, f.timestamp, f.depth))
+                feed(f, r.c2w)
             if r.need_keyframe and cfg.mapper_follows_ba:
                 self._push_refined_poses(fe.poses(window_only=True))
+        fe.settle_scale()  # the sequence ended before the late anchor: the bootstrap's scale stays
+        if held:
+            feed(*held.pop())
         # BA-refined poses of every tracked frame
         for k, p in fe.poses().items():
             self.est[k] = p
+        self.init_report["late_anchor"] = fe.late_anchor
         self.init_report["ba"] = {"runs": len(fe.ba_stats),
                                   "ms_median": float(np.median([b["ms"] for b in fe.ba_stats])) if fe.ba_stats else None,
                                   "rms_after_px_median": float(np.median([b["rms_after_px"] for b in fe.ba_stats]))

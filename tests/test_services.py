@@ -398,10 +398,11 @@ def _feed_mono(core, ds, anchors: bool):
 
 
 def test_mono_tracker_core_is_the_library_front_end_anchored_by_gt(room320):
-    """The default (mono) tracker answers every frame from the first one, without a map: the
-    bootstrap frames all at once when the two-view bootstrap succeeds, then each frame as it
-    comes. Its poses are exactly those of fmapping's MonoFrontend on the same frames with the
-    same anchor (frame 0 at its GT pose, GT baseline length), and close to the GT."""
+    """The default (mono) tracker answers every frame from the first one, without a map: frames
+    0-14 all at once when the late anchor at frame 14 has fixed the scale (the bootstrap succeeds
+    earlier), then each frame as it comes. Its poses are exactly those of fmapping's MonoFrontend
+    on the same frames with the same anchor (frame 0 at its GT pose, GT baseline length), and
+    close to the GT."""
     from fmapping.datasets import open_dataset
     from fmapping.metrics import ate
     from fmapping.tracking.frontend import TrackerConfig
@@ -415,8 +416,8 @@ def test_mono_tracker_core_is_the_library_front_end_anchored_by_gt(room320):
     poses, answered_at, newest = _feed_mono(core, ds, anchors=True)
     assert sorted(poses) == list(range(n)) and core.ack == n - 1 and not core.waiting
     boot = core.counters.get("bootstrap_frame")
-    assert 1 <= boot < 20 and all(answered_at[i] == boot for i in range(boot + 1))
-    assert all(answered_at[i] == i for i in range(boot + 1, n))
+    assert 1 <= boot < 14 and all(answered_at[i] == 14 for i in range(15))
+    assert all(answered_at[i] == i for i in range(15, n))
     assert core.counters.get("bootstrap_anchored") == 1
     P.decode(P.encode(P.Status(service="tracker", counters=core.counters.snapshot())))  # a Status carries them
     assert all(m.source == "tracker" and m.quality > 0 for m in poses.values())
@@ -429,12 +430,17 @@ def test_mono_tracker_core_is_the_library_front_end_anchored_by_gt(room320):
         i += 1
     for k in range(i, n):
         ref[k] = fe.track(k, ds[k].rgb).c2w
+        if k == 14:  # the held frames leave with their poses after the late anchor
+            ref.update(fe.poses())
     for k in range(n):
         np.testing.assert_allclose(poses[k].c2w, ref[k], atol=1e-9, err_msg=f"frame {k}")
     np.testing.assert_allclose(poses[0].c2w, g[0], atol=1e-12)
     # poses the bundle adjustment moved were sent again, with their first timestamp and quality: the newest
     # pose of every frame is the front end's final one (to the republish threshold)
     assert core.counters.get("republished", 0) > 0
+    # anchors were read after the bootstrap, up to the late anchor at frame 14
+    assert fe.late_anchor["frame"] == 14 and "refused" not in fe.late_anchor
+    assert core.counters.get("late_anchor_factor") == pytest.approx(fe.late_anchor["factor"], abs=1e-6)
     final = fe.poses()
     for k in range(n):
         dt, dr = pose_distance(newest[k].c2w, final[k])
@@ -449,21 +455,44 @@ def test_mono_tracker_core_is_the_library_front_end_anchored_by_gt(room320):
 
 def test_mono_tracker_core_without_anchors_uses_the_unit_depth_convention(room320):
     """Without anchor poses frame 0 is the identity and the unit is the median bootstrap depth:
-    the trajectory is the anchored one up to a similarity (measured: 2e-5 m RMSE after Sim3)."""
+    the newest published trajectory is the anchored one up to a similarity (the anchored run
+    holds frames 0-14 for its late anchor, so its first answers are later, more refined poses;
+    measured: 0.3 mm RMSE after Sim3)."""
     from fmapping.datasets import open_dataset
     from fmapping.metrics import ate
     from services.tracker import TrackerCore
 
     ds = open_dataset(room320)
     core = TrackerCore()
-    poses, _, _ = _feed_mono(core, ds, anchors=False)
+    first, _, poses = _feed_mono(core, ds, anchors=False)
     assert sorted(poses) == list(range(len(ds))) and core.counters.get("bootstrap_anchored") == 0
-    np.testing.assert_allclose(poses[0].c2w, np.eye(4), atol=1e-12)  # no world frame given: frame 0 is it
-    anchored, _, _ = _feed_mono(TrackerCore(), ds, anchors=True)
+    np.testing.assert_allclose(first[0].c2w, np.eye(4), atol=1e-12)  # no world frame given: frame 0 is it
+    _, _, anchored = _feed_mono(TrackerCore(), ds, anchors=True)
     est = np.stack([poses[k].c2w for k in range(len(ds))])
     r = ate(est, np.stack([anchored[k].c2w for k in range(len(ds))]), "sim3")
     assert r["rmse_m"] < 1e-3 and r["rot_fit_mean_deg"] < 0.01, r
     assert ate(est, np.stack([ds[k].c2w for k in range(len(ds))]), "sim3")["rmse_m"] < 0.015
+
+
+def test_mono_tracker_core_holds_poses_until_the_late_anchor_and_releases_them_on_stop(room320):
+    """A stream that stops before frame 14: the poses held for the late anchor leave on the
+    ``stop`` control, at the bootstrap's scale, and every frame is answered once."""
+    from fmapping.datasets import open_dataset
+    from services.tracker import TrackerCore
+
+    ds = open_dataset(room320)
+    core = TrackerCore()
+    sent = []
+    for i in range(11):
+        f = ds[i]
+        core.handle("poses", P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
+        sent += core.handle("frames", P.encode(P.frame_from_dataset(f, seq=i)))
+    assert core.counters.get("bootstrap_frame") <= 10 and sent == [] and core.mono.scale_pending
+    out = core.handle("control", P.encode(P.Control(command="stop")))
+    assert [m.seq for _, m in out] == list(range(11)) and all(m.quality > 0 for _, m in out)
+    assert core.mono.late_anchor["factor"] == 1.0 and "stopped" in core.mono.late_anchor["refused"]
+    assert core.counters.get("late_anchor_factor") == 1.0 and core.ack == 10
+    np.testing.assert_allclose(out[0][1].c2w, ds[0].c2w, atol=1e-9)
 
 
 def test_mono_tracker_core_restarts_a_failed_bootstrap_and_answers_its_frames(room320):

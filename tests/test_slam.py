@@ -62,6 +62,8 @@ def test_slam_rgb_only_end_to_end(scene, tmp_path, monkeypatch):
     on_disk = json.loads((tmp_path / "out" / "stats.json").read_text())
     assert on_disk["summary"]["frames"] == 40 and "tracking_ms" in on_disk and "windows" in on_disk
     assert on_disk["init"]["frontend"] == "mono" and on_disk["init"]["scale_from"] == "anchor"
+    # the scale was taken again at frame 14, before the mapper saw a frame (it holds the rescaled poses: below)
+    assert on_disk["init"]["late_anchor"]["frame"] == 14 and "refused" not in on_disk["init"]["late_anchor"]
     assert s["tracking_loss_events"] == 0
     # measured: 0.25 cm (Sim3) / 0.59 cm (unaligned, GT-anchored scale) on this 40-frame 320x240 clip
     # (0.43 / 1.16 cm with the 21 px KLT window of before)

@@ -9,6 +9,8 @@
   :mod:`fmapping.tracking.features`).
 * :mod:`fmapping.tracking.render_compare` - Adam on se(3) through the neural field.
 * :mod:`fmapping.tracking.mapview` - depth / rays rendered from the mapper's field.
+* :mod:`fmapping.tracking.consistency` - how well poses explain the images (KLT tracks moved
+  through depth), and the camera-frame rotation that explains them best.
 * :mod:`fmapping.tracking.sources` - kiss-icp on depth, TUM files.
 """
 from fmapping.tracking.direct import AlignConfig, AlignResult, Reference, align, make_reference

@@ -79,6 +79,13 @@ def inv_pose(t: np.ndarray) -> np.ndarray:
     return out
 
 
+def scale_about(c2w: np.ndarray, center: np.ndarray, s: float) -> np.ndarray:
+    """The pose with its camera centre moved to ``center + s * (centre - center)`` (a world scaled about ``center``)."""
+    out = np.array(c2w, np.float64)
+    out[:3, 3] = center + s * (out[:3, 3] - center)
+    return out
+
+
 def pose_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """(translation metres, rotation degrees) of ``inv(a) @ b``."""
     d = inv_pose(a) @ b

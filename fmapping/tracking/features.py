@@ -75,9 +75,17 @@ def detect_corners(gray: np.ndarray, cfg: KltConfig, existing: Optional[np.ndarr
     return np.zeros((0, 2), np.float32) if pts is None else pts.reshape(-1, 2).astype(np.float32)
 
 
+REFERENCE_WIDTH = 320  # pixel sizes and thresholds of the front-end configs are given at this image width
+
+
+def at_width(px: float, width: int) -> float:
+    """A pixel size given at :data:`REFERENCE_WIDTH` for an image ``width`` pixels wide."""
+    return px * width / REFERENCE_WIDTH
+
+
 def klt_window(cfg: KltConfig, width: int) -> int:
     """The LK window (pixels, odd) for an image ``width`` pixels wide (see ``KltConfig.half_window``)."""
-    return 2 * max(2, int(round(cfg.half_window * width / 320.0))) + 1
+    return 2 * max(2, int(round(at_width(cfg.half_window, width)))) + 1
 
 
 def klt_track(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: KltConfig,
@@ -111,21 +119,29 @@ def triangulate(camera: PinholeCamera, c2w_a: np.ndarray, c2w_b: np.ndarray, uv_
                 min_parallax_deg: float = 1.0, max_reproj_px: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
     """World points (N, 3) from pixel pairs in two views with known poses, and a validity mask.
 
-    Linear (DLT) triangulation; a point is valid when it lies in front of both
-    cameras, its rays meet at an angle of at least ``min_parallax_deg`` and it
-    reprojects within ``max_reproj_px`` in both views.
+    Linear (DLT) triangulation in the frame of view a with the baseline scaled to 1, so
+    the result moves with any rigid motion and scaling of the world (a DLT in world
+    coordinates weighs its algebraic error by where the world origin is and by the unit
+    of length). A point is valid when it lies in front of both cameras, its rays meet at
+    an angle of at least ``min_parallax_deg`` and it reprojects within ``max_reproj_px``
+    in both views.
     """
     uv_a = np.asarray(uv_a, np.float64).reshape(-1, 2)
     uv_b = np.asarray(uv_b, np.float64).reshape(-1, 2)
     if len(uv_a) == 0:
         return np.zeros((0, 3)), np.zeros(0, bool)
     k = camera.K
+    c2w_a = np.asarray(c2w_a, np.float64)
     w2c_a = np.linalg.inv(c2w_a)[:3]
     w2c_b = np.linalg.inv(c2w_b)[:3]
-    xh = cv2.triangulatePoints(k @ w2c_a, k @ w2c_b, uv_a.T, uv_b.T)
+    a_to_b = np.linalg.inv(np.linalg.inv(c2w_a) @ c2w_b)  # a's camera frame -> b's camera frame
+    base = max(float(np.linalg.norm(a_to_b[:3, 3])), 1e-12)
+    a_to_b[:3, 3] /= base
+    xh = cv2.triangulatePoints(k @ np.eye(4)[:3], k @ a_to_b[:3], uv_a.T, uv_b.T)
     w = xh[3]
     good_w = np.abs(w) > 1e-12
-    x = (xh[:3] / np.where(good_w, w, 1.0)).T
+    x_a = (xh[:3] / np.where(good_w, w, 1.0)).T * base  # in a's camera frame
+    x = x_a @ c2w_a[:3, :3].T + c2w_a[:3, 3]
     ok = good_w & np.isfinite(x).all(1)
     out = []
     for c2w, w2c, uv in ((c2w_a, w2c_a, uv_a), (c2w_b, w2c_b, uv_b)):

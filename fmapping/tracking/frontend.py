@@ -29,7 +29,7 @@ import numpy as np
 from fmapping.camera import PinholeCamera
 from fmapping.tracking.direct import (
     AlignConfig, AlignResult, DepthSource, Reference, align, build_pyramid, image_valid_mask, inv_pose, make_reference,
-    orthonormalize, pose_distance, reference_from_points, to_gray,
+    orthonormalize, pose_distance, reference_from_points, scale_about, to_gray,
 )
 
 
@@ -137,6 +137,15 @@ class DirectTracker:
     def reset_motion(self, c2w_list: list) -> None:
         """Replace the motion history (e.g. with mapper-refined poses of the last two frames)."""
         self._history = [orthonormalize(p) for p in c2w_list[-2:]]
+
+    def rescale(self, center: np.ndarray, s: float) -> None:
+        """Scale the world about ``center`` by ``s``: keyframe poses and points, the motion model."""
+        refs = {id(r): r for r in [*self.recent, self.reference] if r is not None}
+        for r in refs.values():
+            r.c2w = scale_about(r.c2w, center, s)
+            r.points = r.points * s
+            r.median_depth *= s
+        self._history = [scale_about(p, center, s) for p in self._history]
 
     def predict(self) -> np.ndarray:
         """Constant-velocity prediction of the next camera-to-world pose."""

@@ -8,7 +8,11 @@ RGB-only tracking before (and independently of) the neural map:
    an *anchor*: the metric baseline ``|t_k - t_0|`` from a pose source (ground
    truth: the DIM-SLAM convention of anchoring with known first poses), or else
    the convention that the median scene depth is ``unit_depth``. Frames ``1..k``
-   are then aligned photometrically to frame 0 with the triangulated depth.
+   are then aligned photometrically to frame 0 with the triangulated depth. With an
+   anchor, its baseline is taken again ``late_anchor_frames`` frames in (the end of
+   the mapper's init window) and the whole front end is rescaled about frame 0
+   (:meth:`MonoFrontend.rescale`): a bootstrap baseline of a few frames is too short
+   to hold the scale.
 2. **Tracking.** Every frame is aligned by :class:`~fmapping.tracking.frontend.DirectTracker`
    to the current keyframe (sparse depth at tracked corners); KLT tracks are
    carried along from frame to frame. A frame the alignment loses (motion blur, a
@@ -38,9 +42,10 @@ import numpy as np
 
 from fmapping.camera import PinholeCamera
 from fmapping.tracking.ba import bundle_adjust
-from fmapping.tracking.direct import inv_pose, orthonormalize, pose_distance, select_pixels, to_gray
+from fmapping.tracking.direct import inv_pose, orthonormalize, pose_distance, scale_about, select_pixels, to_gray
 from fmapping.tracking.features import (
-    KltConfig, detect_corners, klt_track, to_u8, triangulate, two_view_init, two_view_known_baseline,
+    REFERENCE_WIDTH, KltConfig, at_width, detect_corners, klt_track, to_u8, triangulate, two_view_init,
+    two_view_known_baseline,
 )
 from fmapping.tracking.frontend import DirectTracker, TrackerConfig, TrackResult
 
@@ -86,6 +91,14 @@ class MonoConfig:
     pnp_min_points: int = 30
     pnp_recovery: bool = True  # a frame the direct alignment loses gets its pose from the landmarks (PnP + RANSAC)
     pnp_inlier_px: float = 2.0
+    # With an anchor, its baseline sets the scale again at the first tracked frame with an anchor pose from
+    # frame first + late_anchor_frames - 1 on (15: frame 14, the end of the mapper's init window, where the
+    # map front end takes its scale): everything is scaled about the first camera centre then. The
+    # bootstrap's baseline is a few frames long (TUM fr1_rpy: 1.3 cm at frame 4), too short to fix the
+    # scale: by frame 14 the GT has moved 3.0x as far as the estimate. Given up (scale kept) after twice
+    # as many frames without one. 0: the bootstrap's scale stays.
+    late_anchor_frames: int = 15
+    late_anchor_factor_max: float = 10.0  # a refresh changing the scale by more (or less than 1/this) is refused
 
 
 def moved_poses(held: dict, refined: dict, min_m: float = 1e-3, min_deg: float = 0.05) -> dict:
@@ -98,6 +111,41 @@ def moved_poses(held: dict, refined: dict, min_m: float = 1e-3, min_deg: float =
             dt, dr = pose_distance(held[k], c2w)
             if dt > min_m or dr > min_deg:
                 out[k] = c2w
+    return out
+
+
+def _spread(x: np.ndarray) -> tuple[np.ndarray, float]:
+    """Centroid and RMS distance from it of points (N, 3)."""
+    mu = x.mean(0)
+    return mu, max(float(np.sqrt(((x - mu) ** 2).sum(1).mean())), 1e-12)
+
+
+def _w2c_from_cv(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    import cv2
+
+    w2c = np.eye(4)
+    w2c[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64))[0]
+    w2c[:3, 3] = np.asarray(tvec, np.float64).reshape(-1)
+    return w2c
+
+
+def refine_pnp(camera: PinholeCamera, x: np.ndarray, uv: np.ndarray, w2c: np.ndarray) -> Optional[np.ndarray]:
+    """World-to-camera pose refined from ``w2c`` on the reprojection error of world points ``x``
+    (N, 3) seen at pixels ``uv`` (OpenCV's iterative PnP), or None. The points are centred and
+    scaled to unit spread first: OpenCV's stopping rule is in absolute units, so the result would
+    otherwise depend on where the world's origin is and on its unit of length."""
+    import cv2
+
+    mu, d = _spread(x)
+    rot = w2c[:3, :3]
+    rvec, _ = cv2.Rodrigues(np.ascontiguousarray(rot))
+    tvec = ((w2c[:3, 3] + rot @ mu) / d).reshape(3, 1)
+    ok, rvec, tvec = cv2.solvePnP((x - mu) / d, uv, camera.K, None, rvec, tvec, useExtrinsicGuess=True,
+                                  flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok:
+        return None
+    out = _w2c_from_cv(rvec, tvec)
+    out[:3, 3] = d * out[:3, 3] - out[:3, :3] @ mu
     return out
 
 
@@ -162,6 +210,9 @@ class MonoFrontend:
         self._lost_run = 0
         self.reinits: list = []
         self.dense_checks: list = []  # per keyframe with extra depth: did it agree with the landmarks?
+        self._first_index = 0  # the bootstrap's first frame
+        self._anchor: Optional[Callable[[int], Optional[float]]] = None  # baseline source of the late anchor
+        self.late_anchor: Optional[dict] = None  # {"frame", "factor"} once the scale was taken again (or refused)
 
     # ================================================================== bootstrap
     def bootstrap(self, index: int, rgb: np.ndarray, c2w0: np.ndarray,
@@ -183,6 +234,7 @@ class MonoFrontend:
         gray = to_u8(rgb)
         c = self.cfg
         if not self._buf:
+            self._first_index = index
             self._buf.append((index, rgb))
             self._tracks = _Tracks(detect_corners(gray, c.klt), index)
             self._last_gray = gray
@@ -197,7 +249,7 @@ class MonoFrontend:
             return None
         tr = self._tracks
         flow = np.median(np.linalg.norm(tr.uv - tr.uv_first, axis=1))
-        if flow < c.init_min_flow_px * self.camera.width / 320.0:
+        if flow < at_width(c.init_min_flow_px, self.camera.width):
             return None
         need_px = c.init_min_parallax_px if len(tr) >= 2 * c.init_min_points else c.init_fallback_parallax_px
         pos = anchor_position(index) if anchor_position is not None else None
@@ -269,6 +321,8 @@ class MonoFrontend:
         self._set_reference(index, rgb, gray)
         self.initialized = True
         self._buf = []
+        if how != "unit_depth" and anchor_baseline is not None and c.late_anchor_frames > 0:
+            self._anchor = anchor_baseline
         return poses
 
     def _bootstrap_ba(self, poses: dict, k_index: int, baseline: Optional[float], fix_last: bool = False) -> Optional[float]:
@@ -326,6 +380,8 @@ class MonoFrontend:
         (e.g. rendered from the map) adds dense points to new keyframes."""
         if not self.initialized:
             raise RuntimeError("MonoFrontend.track before a successful bootstrap")
+        if self._anchor is not None and index - self._first_index >= 2 * self.cfg.late_anchor_frames:
+            self.settle_scale(f"no tracked frame with an anchor pose in the first {2 * self.cfg.late_anchor_frames}")
         gray = to_u8(rgb)
         res = self.tracker.track(rgb)
         self._klt(gray)
@@ -357,7 +413,50 @@ class MonoFrontend:
                 pass  # keep the old reference; the tracker asks again next frame
             res.c2w = c2w
             res.ms += (time.perf_counter() - t0) * 1000.0  # keyframe work counts as tracking time
+        if self._anchor is not None and index - self._first_index >= self.cfg.late_anchor_frames - 1:
+            res.c2w = self._late_anchor(index, res.c2w)
         return res
+
+    def _late_anchor(self, index: int, c2w: np.ndarray) -> np.ndarray:
+        """Take the anchor's baseline again at frame ``index`` (see ``MonoConfig.late_anchor_frames``):
+        rescale everything about the first camera centre. Returns frame ``index``'s pose afterwards."""
+        c = self.cfg
+        base = self._anchor(index)
+        est = float(np.linalg.norm(c2w[:3, 3] - self._c2w0[:3, 3]))
+        if base is None:
+            return c2w  # no anchor pose for this frame: try the next one (see track)
+        if base <= 1e-4 or est <= 1e-9 or not 1 / c.late_anchor_factor_max <= base / est <= c.late_anchor_factor_max:
+            self.late_anchor = {"frame": int(index), "factor": 1.0,
+                                "refused": f"anchor baseline {base:.4g} against {est:.4g} estimated"}
+        else:
+            self.rescale(base / est)
+            self.late_anchor = {"frame": int(index), "factor": base / est}
+            c2w = scale_about(c2w, self._c2w0[:3, 3], base / est)
+        self._anchor = None
+        return c2w
+
+    @property
+    def scale_pending(self) -> bool:
+        """True while the front end waits for its late anchor."""
+        return self._anchor is not None
+
+    def settle_scale(self, why: str = "the sequence ended before it") -> None:
+        """Stop waiting for the late anchor: the scale stays (``late_anchor`` says why)."""
+        if self._anchor is not None:
+            self.late_anchor = {"frame": None, "factor": 1.0, "refused": why}
+            self._anchor = None
+
+    def rescale(self, s: float) -> None:
+        """Scale the front end's world by ``s`` about the first camera centre: keyframe poses,
+        landmarks, the poses of the frames relative to their keyframe, the tracker's references."""
+        c0 = self._c2w0[:3, 3]
+        self._kf_pose = {k: scale_about(p, c0, s) for k, p in self._kf_pose.items()}
+        self._lm = [c0 + s * (np.asarray(p) - c0) for p in self._lm]
+        for i, (k, rel) in self._rel.items():
+            rel = rel.copy()
+            rel[:3, 3] *= s
+            self._rel[i] = (k, rel)
+        self.tracker.rescale(c0, s)
 
     # ================================================================== internals
     def _klt(self, gray: np.ndarray) -> None:
@@ -405,15 +504,6 @@ class MonoFrontend:
             return None
         return np.stack([self._lm[i] for i in tr.lid[has]]), tr.uv[has]
 
-    @staticmethod
-    def _c2w_from_cv(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
-        import cv2
-
-        w2c = np.eye(4)
-        w2c[:3, :3] = cv2.Rodrigues(rvec)[0]
-        w2c[:3, 3] = np.asarray(tvec).reshape(-1)
-        return orthonormalize(inv_pose(w2c))
-
     def _recover(self, rgb: np.ndarray, lost: TrackResult) -> TrackResult:
         """A frame the direct alignment lost: the pose from the tracked landmarks (PnP + RANSAC),
         then the direct alignment again from there. When that still fails, the PnP pose is kept
@@ -440,20 +530,20 @@ class MonoFrontend:
         if found is None:
             return None
         x, uv = found
-        px = self.cfg.pnp_inlier_px * max(1.0, self.camera.width / 320.0)  # KLT noise grows with the resolution
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(x, uv, self.camera.K, None, reprojectionError=px,
+        px = at_width(self.cfg.pnp_inlier_px, max(self.camera.width, REFERENCE_WIDTH))  # KLT noise grows with the size
+        mu, d = _spread(x)
+        ok, rvec, tvec, inl = cv2.solvePnPRansac((x - mu) / d, uv, self.camera.K, None, reprojectionError=px,
                                                  iterationsCount=200, flags=cv2.SOLVEPNP_EPNP)
         if not ok or inl is None or len(inl) < max(self.cfg.pnp_min_points, 0.5 * len(x)):
             return None
         inl = inl.reshape(-1)
-        ok, rvec, tvec = cv2.solvePnP(x[inl], uv[inl], self.camera.K, None, rvec, tvec,
-                                      useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
-        return self._c2w_from_cv(rvec, tvec) if ok else None
+        w2c = _w2c_from_cv(rvec, tvec)
+        w2c[:3, 3] = d * w2c[:3, 3] - w2c[:3, :3] @ mu
+        w2c = refine_pnp(self.camera, x[inl], uv[inl], w2c)
+        return None if w2c is None else orthonormalize(inv_pose(w2c))
 
     def _pnp(self, c2w: np.ndarray) -> Optional[np.ndarray]:
         """Refine a pose on the reprojection error of the tracked landmarks (inliers of the given pose)."""
-        import cv2
-
         found = self._tracked_landmarks()
         if found is None:
             return None
@@ -466,13 +556,10 @@ class MonoFrontend:
         inl = (y[:, 2] > 1e-3) & (np.linalg.norm(proj - uv, axis=1) < self.cfg.pnp_inlier_px)
         if inl.sum() < self.cfg.pnp_min_points:
             return None
-        rvec, _ = cv2.Rodrigues(w2c[:3, :3])
-        tvec = w2c[:3, 3].reshape(3, 1).copy()
-        ok, rvec, tvec = cv2.solvePnP(x[inl], uv[inl], cam.K, None, rvec, tvec, useExtrinsicGuess=True,
-                                      flags=cv2.SOLVEPNP_ITERATIVE)
-        if not ok:
+        refined = refine_pnp(cam, x[inl], uv[inl], w2c)
+        if refined is None:
             return None
-        out = self._c2w_from_cv(rvec, tvec)
+        out = orthonormalize(inv_pose(refined))
         dt, dr = pose_distance(out, c2w)
         scale = self.tracker.reference.median_depth if self.tracker.reference is not None else 1.0
         if dt > 0.1 * scale or dr > 5.0:

@@ -9,7 +9,10 @@ Two front ends (``TrackerServiceOptions.frontend``):
   The world frame and the metric scale come from the *anchor* poses (``poses/gt`` when the
   player publishes them): frame 0 is put at its anchor pose and the bootstrap baseline
   takes the anchor's length (the DIM-SLAM convention); without anchors frame 0 is the
-  identity and the median bootstrap depth is the unit (evaluate with Sim3). When a field
+  identity and the median bootstrap depth is the unit (evaluate with Sim3). Anchors keep
+  being read until the front end's late anchor (``MonoConfig.late_anchor_frames``, frame 14)
+  has taken the scale again; until then poses are held, so that no consumer integrates a
+  pose at a scale about to change (a ``stop`` control releases them). When a field
   snapshot is held, new keyframes add depth rendered from it (only where the mapped frames
   looked, and only when it agrees with the landmarks). A bootstrap that fails (no parallax
   within ``MonoConfig.init_max_frames`` frames) restarts at the next frame; the frames it
@@ -106,6 +109,7 @@ class TrackerCore(ServiceCore):
         self.mono = None  # MonoFrontend (frontend "mono")
         self.anchors: dict[int, np.ndarray] = {}  # anchor poses of the frames the bootstrap may still use
         self._boot_stamps: dict[int, float] = {}  # frames held by the bootstrap -> timestamp
+        self._held: list = []  # (seq, stamp, c2w, quality) answered while the late anchor is pending
         self._c2w0: Optional[np.ndarray] = None  # world pose of the bootstrap's first frame
         self._first_anchored: Optional[np.ndarray] = None  # its anchor pose (None: no anchor)
         self.camera = None
@@ -140,6 +144,8 @@ class TrackerCore(ServiceCore):
         if isinstance(msg, P.Control):
             if msg.command == "reset":
                 self.reset()
+            elif msg.command == "stop":
+                return self._release_held(settle=True)  # the stream ended: nothing stays unanswered
             return []
         raise ValueError(f"TrackerCore: unexpected message {type(msg).__name__}")
 
@@ -268,6 +274,7 @@ class TrackerCore(ServiceCore):
         self.mono = None
         self.anchors.clear()
         self._boot_stamps.clear()
+        self._held.clear()
         self._c2w0 = self._first_anchored = None
         self.counters.inc("resets")
 
@@ -290,7 +297,8 @@ class TrackerCore(ServiceCore):
         self._boot_stamps.clear()
 
     def _on_anchor(self, p: P.Pose) -> list[Output]:
-        if (self.mono is not None and self.mono.initialized) or p.seq <= self.last_seq:
+        done = self.mono is not None and self.mono.initialized and not self.mono.scale_pending
+        if done or p.seq <= self.last_seq:
             return []
         return self._remember(self.anchors, p, "anchor_poses")
 
@@ -335,18 +343,45 @@ class TrackerCore(ServiceCore):
                     self.counters.set("bootstrap_frame", seq)
                     self.counters.set("bootstrap_anchored", int(fe.init_info.get("scale_from") == "anchor"))
                     for s in sorted(poses):
-                        self._keep_own(s, poses[s], self._boot_stamps.get(s, 0.0), 1.0)
                         self.counters.inc("frames_tracked")
-                        out += self._emit(s, self._boot_stamps.get(s, 0.0), poses[s], 1.0)
+                        out += self._publish_mono(s, self._boot_stamps.get(s, 0.0), poses[s], 1.0)
                     self._boot_stamps.clear()
-                    self.anchors.clear()
+                    out += self._release_held()
                 continue
             self.waiting.popitem(last=False)
             res = fe.track(seq, np.asarray(f.rgb), extra_depth=self._extra_depth())
+            out += self._release_held()  # the late anchor may have fixed the scale with this frame
             out += self._answer(f, res)
             if res.need_keyframe and not res.lost and self.opts.republish:
                 out += self._republish_refined()
         self.counters.set("waiting_frames", len(self.waiting))
+        return out
+
+    def _publish_mono(self, seq: int, stamp: float, c2w: np.ndarray, quality: float) -> list[Output]:
+        """Publish a mono pose, or hold it while the front end waits for its late anchor: nothing
+        leaves at a scale that is about to change (a mapper would have integrated it)."""
+        if self.mono is not None and self.mono.scale_pending:
+            self._held.append((seq, stamp, np.array(c2w), quality))
+            return []
+        if quality > 0:
+            self._keep_own(seq, c2w, stamp, quality)
+        return self._emit(seq, stamp, c2w, quality)
+
+    def _release_held(self, settle: bool = False) -> list[Output]:
+        """Once the scale is fixed (or ``settle``: given up), the held poses, as the front end has them now."""
+        fe = self.mono
+        if fe is None or (fe.scale_pending and not settle):
+            return []
+        if fe.scale_pending:
+            fe.settle_scale("the stream stopped before it")
+        self.anchors.clear()
+        if fe.late_anchor is not None:
+            self.counters.set("late_anchor_factor", round(float(fe.late_anchor["factor"]), 6))
+        held, self._held = self._held, []
+        now = fe.poses()
+        out: list[Output] = []
+        for seq, stamp, c2w, quality in held:
+            out += self._publish_mono(seq, stamp, now.get(seq, c2w) if quality > 0 else c2w, quality)
         return out
 
     def _republish_refined(self) -> list[Output]:
@@ -554,12 +589,16 @@ class TrackerCore(ServiceCore):
         if res.lost:
             self.counters.inc("frames_lost")
             self.last_error = f"frame {f.seq} lost: {res.reason}"
+            if self.opts.frontend == "mono":
+                return self._publish_mono(f.seq, f.timestamp, res.c2w, 0.0)
             return self._emit(f.seq, f.timestamp, res.c2w, 0.0)
         if res.relocalised:
             self.counters.inc("relocalised")
         quality = float(max(res.inlier_ratio, 1e-6))
-        self._keep_own(f.seq, res.c2w, f.timestamp, quality)
         self._motion_seq = f.seq
+        if self.opts.frontend == "mono":
+            return self._publish_mono(f.seq, f.timestamp, res.c2w, quality)
+        self._keep_own(f.seq, res.c2w, f.timestamp, quality)
         return self._emit(f.seq, f.timestamp, res.c2w, quality)
 
 
