@@ -457,7 +457,7 @@ def test_mono_tracker_core_without_anchors_uses_the_unit_depth_convention(room32
     """Without anchor poses frame 0 is the identity and the unit is the median bootstrap depth:
     the newest published trajectory is the anchored one up to a similarity (the anchored run
     holds frames 0-14 for its late anchor, so its first answers are later, more refined poses;
-    measured: 0.3 mm RMSE after Sim3)."""
+    measured: 0.2 mm RMSE after Sim3)."""
     from fmapping.datasets import open_dataset
     from fmapping.metrics import ate
     from services.tracker import TrackerCore

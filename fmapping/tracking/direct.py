@@ -80,7 +80,8 @@ def inv_pose(t: np.ndarray) -> np.ndarray:
 
 
 def scale_about(c2w: np.ndarray, center: np.ndarray, s: float) -> np.ndarray:
-    """The pose with its camera centre moved to ``center + s * (centre - center)`` (a world scaled about ``center``)."""
+    """The pose in a world scaled by ``s`` about ``center``: its camera centre ``t`` moves to
+    ``center + s * (t - center)``, its rotation stays."""
     out = np.array(c2w, np.float64)
     out[:3, 3] = center + s * (out[:3, 3] - center)
     return out

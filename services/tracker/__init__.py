@@ -374,11 +374,13 @@ class TrackerCore(ServiceCore):
             return []
         if fe.scale_pending:
             fe.settle_scale("the stream stopped before it")
+        if not self._held and not self.anchors:
+            return []  # released before (the usual case: every frame after the late anchor)
         self.anchors.clear()
         if fe.late_anchor is not None:
             self.counters.set("late_anchor_factor", round(float(fe.late_anchor["factor"]), 6))
         held, self._held = self._held, []
-        now = fe.poses()
+        now = fe.poses() if held else {}
         out: list[Output] = []
         for seq, stamp, c2w, quality in held:
             out += self._publish_mono(seq, stamp, now.get(seq, c2w) if quality > 0 else c2w, quality)
