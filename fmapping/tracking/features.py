@@ -133,8 +133,9 @@ def triangulate(camera: PinholeCamera, c2w_a: np.ndarray, c2w_b: np.ndarray, uv_
     k = camera.K
     c2w_a = np.asarray(c2w_a, np.float64)
     w2c_a = np.linalg.inv(c2w_a)[:3]
-    w2c_b = np.linalg.inv(c2w_b)[:3]
-    a_to_b = np.linalg.inv(np.linalg.inv(c2w_a) @ c2w_b)  # a's camera frame -> b's camera frame
+    w2c_b4 = np.linalg.inv(c2w_b)
+    w2c_b = w2c_b4[:3]
+    a_to_b = w2c_b4 @ c2w_a  # a's camera frame -> b's camera frame
     base = max(float(np.linalg.norm(a_to_b[:3, 3])), 1e-12)
     a_to_b[:3, 3] /= base
     xh = cv2.triangulatePoints(k @ np.eye(4)[:3], k @ a_to_b[:3], uv_a.T, uv_b.T)
