@@ -489,19 +489,24 @@ class SlamRun:
         if fe.init_info.get("scale_from") == "unit_depth":
             self.anchor = "none"
         self.mapper = self._new_mapper(cfg.mapper.init_frames)
-        held: list = []  # (frame, c2w) kept from the mapper until the late anchor has fixed the scale
+        held: dict = {}  # frame index -> (frame, c2w) kept from the mapper until the late anchor fixed the scale
+
+        def add(f, c2w) -> None:
+            self._after_window(self._add_to_mapper(f.index, f.rgb, c2w, f.timestamp, f.depth))
+
+        def release() -> None:  # the scale is fixed: the held frames go to the mapper with their rescaled poses
+            poses = fe.poses_for({i: c2w for i, (_, c2w) in held.items()})
+            for i, (g, _) in held.items():
+                self.est[i] = poses[i]
+                add(g, poses[i])
+            held.clear()
 
         def feed(f, c2w) -> None:
             if fe.scale_pending:
-                held.append((f, c2w))
+                held[f.index] = (f, c2w)
                 return
-            if held:  # the scale is fixed now: the held frames go to the mapper with their rescaled poses
-                poses, factor = fe.poses(), (fe.late_anchor or {}).get("factor", 1.0)
-                for g, p in held:
-                    self.est[g.index] = poses.get(g.index, scale_about(p, self.c2w0[:3, 3], factor))
-                    self._after_window(self._add_to_mapper(g.index, g.rgb, self.est[g.index], g.timestamp, g.depth))
-                held.clear()
-            self._after_window(self._add_to_mapper(f.index, f.rgb, c2w, f.timestamp, f.depth))
+            release()
+            add(f, c2w)
 
         for f in buf:
             self.est[f.index] = out[f.index]
@@ -524,8 +529,7 @@ class SlamRun:
             if r.need_keyframe and cfg.mapper_follows_ba:
                 self._push_refined_poses(fe.poses(window_only=True))
         fe.settle_scale()  # the sequence ended before the late anchor: the bootstrap's scale stays
-        if held:
-            feed(*held.pop())
+        release()
         # BA-refined poses of every tracked frame
         for k, p in fe.poses().items():
             self.est[k] = p

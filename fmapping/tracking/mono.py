@@ -120,12 +120,13 @@ def _spread(x: np.ndarray) -> tuple[np.ndarray, float]:
     return mu, max(float(np.sqrt(((x - mu) ** 2).sum(1).mean())), 1e-12)
 
 
-def _w2c_from_cv(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+def _w2c_from_normalised(rvec: np.ndarray, tvec: np.ndarray, mu: np.ndarray, d: float) -> np.ndarray:
+    """World-to-camera pose from OpenCV's solution for the points ``(x - mu) / d``."""
     import cv2
 
     w2c = np.eye(4)
     w2c[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64))[0]
-    w2c[:3, 3] = np.asarray(tvec, np.float64).reshape(-1)
+    w2c[:3, 3] = d * np.asarray(tvec, np.float64).reshape(-1) - w2c[:3, :3] @ mu
     return w2c
 
 
@@ -142,11 +143,7 @@ def refine_pnp(camera: PinholeCamera, x: np.ndarray, uv: np.ndarray, w2c: np.nda
     tvec = ((w2c[:3, 3] + rot @ mu) / d).reshape(3, 1)
     ok, rvec, tvec = cv2.solvePnP((x - mu) / d, uv, camera.K, None, rvec, tvec, useExtrinsicGuess=True,
                                   flags=cv2.SOLVEPNP_ITERATIVE)
-    if not ok:
-        return None
-    out = _w2c_from_cv(rvec, tvec)
-    out[:3, 3] = d * out[:3, 3] - out[:3, :3] @ mu
-    return out
+    return _w2c_from_normalised(rvec, tvec, mu, d) if ok else None
 
 
 def _parallax_deg(c2w_a: np.ndarray, c2w_b: np.ndarray, world: np.ndarray) -> np.ndarray:
@@ -537,9 +534,7 @@ class MonoFrontend:
         if not ok or inl is None or len(inl) < max(self.cfg.pnp_min_points, 0.5 * len(x)):
             return None
         inl = inl.reshape(-1)
-        w2c = _w2c_from_cv(rvec, tvec)
-        w2c[:3, 3] = d * w2c[:3, 3] - w2c[:3, :3] @ mu
-        w2c = refine_pnp(self.camera, x[inl], uv[inl], w2c)
+        w2c = refine_pnp(self.camera, x[inl], uv[inl], _w2c_from_normalised(rvec, tvec, mu, d))
         return None if w2c is None else orthonormalize(inv_pose(w2c))
 
     def _pnp(self, c2w: np.ndarray) -> Optional[np.ndarray]:
@@ -735,6 +730,14 @@ class MonoFrontend:
         keep = set(self._window) if window_only else self._kf_pose
         return {i: orthonormalize(self._kf_pose[k] @ rel) for i, (k, rel) in self._rel.items()
                 if k in keep and k in self._kf_pose}
+
+    def poses_for(self, held: dict) -> dict:
+        """The front end's current poses of the frames in ``held`` ({frame: c2w} handed out
+        earlier, e.g. kept back while the scale was pending); a frame it has no pose for (a
+        lost one) keeps its held pose, moved with the late anchor's rescale."""
+        now = self.poses()
+        factor = (self.late_anchor or {}).get("factor", 1.0)
+        return {i: now[i] if i in now else scale_about(c2w, self._c2w0[:3, 3], factor) for i, c2w in held.items()}
 
     def landmarks(self) -> np.ndarray:
         return np.stack(self._lm) if self._lm else np.zeros((0, 3))

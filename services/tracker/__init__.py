@@ -380,10 +380,10 @@ class TrackerCore(ServiceCore):
         if fe.late_anchor is not None:
             self.counters.set("late_anchor_factor", round(float(fe.late_anchor["factor"]), 6))
         held, self._held = self._held, []
-        now = fe.poses() if held else {}
+        now = fe.poses_for({seq: c2w for seq, _, c2w, quality in held if quality > 0})  # lost ones: as they were
         out: list[Output] = []
         for seq, stamp, c2w, quality in held:
-            out += self._publish_mono(seq, stamp, now.get(seq, c2w) if quality > 0 else c2w, quality)
+            out += self._publish_mono(seq, stamp, now.get(seq, c2w), quality)
         return out
 
     def _republish_refined(self) -> list[Output]:
