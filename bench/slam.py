@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 KEYS = ("ate_sim3_rmse_m", "ate_se3_rmse_m", "ate_none_rmse_m", "ate_rot_fit_deg", "tracking_loss_events",
-        "relocalised_frames",
+        "loop_closures", "relocalised_frames",
         "tracking_ms_median", "window_seconds_median", "accuracy_cm", "completion_cm", "completion_ratio",
         "accuracy_cm_sim3", "completion_cm_sim3", "completion_ratio_sim3", "frames_mapped", "total_seconds")
 

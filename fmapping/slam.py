@@ -527,7 +527,7 @@ class SlamRun:
             if not r.lost or cfg.feed_lost_frames:
                 feed(f, r.c2w)
             if r.need_keyframe and cfg.mapper_follows_ba:
-                self._push_refined_poses(fe.poses(window_only=True))
+                self._push_refined_poses(fe.refined_poses())
         fe.settle_scale()  # the sequence ended before the late anchor: the bootstrap's scale stays
         release()
         # BA-refined poses of every tracked frame
@@ -683,6 +683,7 @@ def run_slam(args) -> dict:
         "tracking_ms": {str(i): run.track_ms[i] for i in sorted(run.track_ms)},
         "tracking": {str(i): run.track_info[i] for i in sorted(run.track_info)},
         "tracking_loss_events": run.loss_events,
+        "loop_closures": run.frontend.loops if run.frontend is not None else [],
         "mapper_pose_updates": run.pose_updates,
         "windows": run.window_stats,
         "mapper": mstats,
@@ -702,6 +703,7 @@ def run_slam(args) -> dict:
         "frames": len(ds),
         "frames_mapped": len(run.fid_of),
         "tracking_loss_events": len(run.loss_events),
+        "loop_closures": len(run.frontend.loops) if run.frontend is not None else 0,
         "relocalised_frames": sum(bool(v.get("relocalised")) for v in run.track_info.values()),
         "tracking_ms_median": float(np.median(track_ms_after_init)) if len(track_ms_after_init) else
         (float(np.median(ms)) if len(ms) else None),

@@ -339,7 +339,7 @@ def test_triangulate_moves_with_a_similarity_of_the_world():
 def test_refine_pnp_recovers_the_pose_in_any_unit_and_origin():
     """refine_pnp from a guess 2 deg / 5 cm off: the exact pose from noise-free pixels, and the
     same pose (scaled) when the world is moved and scaled."""
-    from fmapping.tracking.mono import refine_pnp
+    from fmapping.tracking.features import refine_pnp
 
     cam, pts, poses, uvs = _points_and_views()
     true_w2c = inv_pose(poses[2])

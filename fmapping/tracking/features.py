@@ -111,6 +111,52 @@ def klt_track(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: KltConf
     return p1, ok
 
 
+def _spread(x: np.ndarray) -> tuple[np.ndarray, float]:
+    """Centroid and RMS distance from it of points (N, 3)."""
+    mu = x.mean(0)
+    return mu, max(float(np.sqrt(((x - mu) ** 2).sum(1).mean())), 1e-12)
+
+
+def _w2c_from_normalised(rvec: np.ndarray, tvec: np.ndarray, mu: np.ndarray, d: float) -> np.ndarray:
+    """World-to-camera pose from OpenCV's solution for the points ``(x - mu) / d``."""
+    w2c = np.eye(4)
+    w2c[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64))[0]
+    w2c[:3, 3] = d * np.asarray(tvec, np.float64).reshape(-1) - w2c[:3, :3] @ mu
+    return w2c
+
+
+def refine_pnp(camera: PinholeCamera, x: np.ndarray, uv: np.ndarray, w2c: np.ndarray) -> Optional[np.ndarray]:
+    """World-to-camera pose refined from ``w2c`` on the reprojection error of world points ``x``
+    (N, 3) seen at pixels ``uv`` (OpenCV's iterative PnP), or None. The points are centred and
+    scaled to unit spread first: OpenCV's stopping rule is in absolute units, so the result would
+    otherwise depend on where the world's origin is and on its unit of length."""
+    mu, d = _spread(x)
+    rot = w2c[:3, :3]
+    rvec, _ = cv2.Rodrigues(np.ascontiguousarray(rot))
+    tvec = ((w2c[:3, 3] + rot @ mu) / d).reshape(3, 1)
+    ok, rvec, tvec = cv2.solvePnP((x - mu) / d, uv, camera.K, None, rvec, tvec, useExtrinsicGuess=True,
+                                  flags=cv2.SOLVEPNP_ITERATIVE)
+    return _w2c_from_normalised(rvec, tvec, mu, d) if ok else None
+
+
+def pnp_ransac(camera: PinholeCamera, x: np.ndarray, uv: np.ndarray, inlier_px: float,
+               iterations: int = 200) -> Optional[tuple[np.ndarray, np.ndarray]]:
+    """World-to-camera pose of world points ``x`` (N, 3) seen at pixels ``uv`` without a prior
+    (EPnP in RANSAC, then :func:`refine_pnp` on the inliers), and the inlier mask; or None.
+    Normalised as :func:`refine_pnp` is."""
+    if len(x) < 6:
+        return None
+    mu, d = _spread(x)
+    ok, rvec, tvec, inl = cv2.solvePnPRansac((x - mu) / d, uv, camera.K, None, reprojectionError=inlier_px,
+                                             iterationsCount=iterations, flags=cv2.SOLVEPNP_EPNP)
+    if not ok or inl is None or len(inl) < 6:
+        return None
+    mask = np.zeros(len(x), bool)
+    mask[inl.reshape(-1)] = True
+    w2c = refine_pnp(camera, x[mask], uv[mask], _w2c_from_normalised(rvec, tvec, mu, d))
+    return None if w2c is None else (w2c, mask)
+
+
 def _rays(camera: PinholeCamera, uv: np.ndarray) -> np.ndarray:
     return np.stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy, np.ones(len(uv))], -1)
 

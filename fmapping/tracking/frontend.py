@@ -147,6 +147,14 @@ class DirectTracker:
             r.median_depth *= s
         self._history = [scale_about(p, center, s) for p in self._history]
 
+    def move_references(self, moves: dict) -> None:
+        """Move the references of keyframes ``moves`` ({frame index: 4x4 T}) to ``T @ c2w`` (their
+        points stay in the camera frame), e.g. after a loop closure corrected those keyframes."""
+        refs = {id(r): r for r in [*self.recent, self.reference] if r is not None}
+        for r in refs.values():
+            if r.frame_index in moves:
+                r.c2w = orthonormalize(moves[r.frame_index] @ r.c2w)
+
     def predict(self) -> np.ndarray:
         """Constant-velocity prediction of the next camera-to-world pose."""
         if not self._history:

@@ -26,6 +26,11 @@ RGB-only tracking before (and independently of) the neural map:
    landmarks; the new keyframe's reference holds every tracked landmark (at its
    observed pixel, with the refined depth) plus, optionally, dense depth from the
    map (``extra_depth``). New corners fill the gaps.
+4. **Loops.** At each keyframe, old keyframes the camera has come back to (by the estimated
+   poses) are checked on their own landmarks and image (:mod:`fmapping.tracking.loop`); a
+   verified loop that contradicts the chain is closed by a pose graph over the keyframes since
+   (:mod:`fmapping.tracking.posegraph`), landmarks moving with their first keyframe;
+   :meth:`MonoFrontend.refined_poses` then hands on every frame's pose.
 
 Non-keyframe poses are stored relative to their keyframe, so :meth:`MonoFrontend.poses`
 returns them moved with the bundle-adjusted keyframes. Poses are camera-to-world
@@ -44,10 +49,12 @@ from fmapping.camera import PinholeCamera
 from fmapping.tracking.ba import bundle_adjust
 from fmapping.tracking.direct import inv_pose, orthonormalize, pose_distance, scale_about, select_pixels, to_gray
 from fmapping.tracking.features import (
-    REFERENCE_WIDTH, KltConfig, at_width, detect_corners, klt_track, to_u8, triangulate, two_view_init,
-    two_view_known_baseline,
+    REFERENCE_WIDTH, KltConfig, at_width, detect_corners, klt_track, pnp_ransac, refine_pnp, to_u8, triangulate,
+    two_view_init, two_view_known_baseline,
 )
 from fmapping.tracking.frontend import DirectTracker, TrackerConfig, TrackResult
+from fmapping.tracking.loop import LoopConfig, locate_in_keyframe, loop_candidates
+from fmapping.tracking.posegraph import optimize_pose_graph
 
 
 @dataclass
@@ -99,6 +106,7 @@ class MonoConfig:
     # as many frames without one. 0: the bootstrap's scale stays.
     late_anchor_frames: int = 15
     late_anchor_factor_max: float = 10.0  # a refresh changing the scale by more (or less than 1/this) is refused
+    loop: LoopConfig = field(default_factory=LoopConfig)  # loop closure at keyframes (fmapping.tracking.loop)
 
 
 def moved_poses(held: dict, refined: dict, min_m: float = 1e-3, min_deg: float = 0.05) -> dict:
@@ -112,38 +120,6 @@ def moved_poses(held: dict, refined: dict, min_m: float = 1e-3, min_deg: float =
             if dt > min_m or dr > min_deg:
                 out[k] = c2w
     return out
-
-
-def _spread(x: np.ndarray) -> tuple[np.ndarray, float]:
-    """Centroid and RMS distance from it of points (N, 3)."""
-    mu = x.mean(0)
-    return mu, max(float(np.sqrt(((x - mu) ** 2).sum(1).mean())), 1e-12)
-
-
-def _w2c_from_normalised(rvec: np.ndarray, tvec: np.ndarray, mu: np.ndarray, d: float) -> np.ndarray:
-    """World-to-camera pose from OpenCV's solution for the points ``(x - mu) / d``."""
-    import cv2
-
-    w2c = np.eye(4)
-    w2c[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64))[0]
-    w2c[:3, 3] = d * np.asarray(tvec, np.float64).reshape(-1) - w2c[:3, :3] @ mu
-    return w2c
-
-
-def refine_pnp(camera: PinholeCamera, x: np.ndarray, uv: np.ndarray, w2c: np.ndarray) -> Optional[np.ndarray]:
-    """World-to-camera pose refined from ``w2c`` on the reprojection error of world points ``x``
-    (N, 3) seen at pixels ``uv`` (OpenCV's iterative PnP), or None. The points are centred and
-    scaled to unit spread first: OpenCV's stopping rule is in absolute units, so the result would
-    otherwise depend on where the world's origin is and on its unit of length."""
-    import cv2
-
-    mu, d = _spread(x)
-    rot = w2c[:3, :3]
-    rvec, _ = cv2.Rodrigues(np.ascontiguousarray(rot))
-    tvec = ((w2c[:3, 3] + rot @ mu) / d).reshape(3, 1)
-    ok, rvec, tvec = cv2.solvePnP((x - mu) / d, uv, camera.K, None, rvec, tvec, useExtrinsicGuess=True,
-                                  flags=cv2.SOLVEPNP_ITERATIVE)
-    return _w2c_from_normalised(rvec, tvec, mu, d) if ok else None
 
 
 def _parallax_deg(c2w_a: np.ndarray, c2w_b: np.ndarray, world: np.ndarray) -> np.ndarray:
@@ -189,6 +165,7 @@ class MonoFrontend:
                  cfg: Optional[MonoConfig] = None):
         self.camera = camera
         self.cfg = cfg or MonoConfig()
+        self.cfg.loop.validate()
         self.tracker = DirectTracker(camera, tracker_cfg or TrackerConfig())
         self.initialized = False
         self.failed = False
@@ -210,6 +187,9 @@ class MonoFrontend:
         self._first_index = 0  # the bootstrap's first frame
         self._anchor: Optional[Callable[[int], Optional[float]]] = None  # baseline source of the late anchor
         self.late_anchor: Optional[dict] = None  # {"frame", "factor"} once the scale was taken again (or refused)
+        self.loops: list = []  # loop closures: {"frame", "keyframe", "inliers", "moved_m", "moved_deg", ...}
+        self._kf_images: dict = {}  # keyframe index -> grey image, for loop verification (bounded)
+        self._moved_all = False  # the last keyframe's update moved every keyframe (a loop closure)
 
     # ================================================================== bootstrap
     def bootstrap(self, index: int, rgb: np.ndarray, c2w0: np.ndarray,
@@ -294,6 +274,8 @@ class MonoFrontend:
             self._obs.append((index, lid, tr.uv[j, 0], tr.uv[j, 1]))
         self._window = [i0, index]
         self._kf_rgb = {i0: self._buf[0][1], index: rgb}
+        if c.loop.enabled:
+            self._kf_images = {i0: to_u8(self._buf[0][1]), index: gray}
         # photometric tracking of frames 1..k against frame 0 with the landmarks' depth
         lids = tr.lid[tr.lid >= 0]
         pts_cam0 = self._cam_points(i0, lids, tr.uv_first[tr.lid >= 0])
@@ -403,7 +385,7 @@ class MonoFrontend:
         self._rel[index] = (self._kf_index, inv_pose(self._kf_pose[self._kf_index]) @ res.c2w)
         if res.need_keyframe:
             t0 = time.perf_counter()
-            c2w = self._add_keyframe(index, rgb, res.c2w)
+            c2w = self._add_keyframe(index, rgb, gray, res.c2w)
             try:
                 self._set_reference(index, rgb, gray, extra_depth)
             except ValueError:
@@ -521,21 +503,15 @@ class MonoFrontend:
         """Camera-to-world pose from the KLT-tracked landmarks alone (no prior), or None when fewer
         than ``pnp_min_points`` inliers (within ``pnp_inlier_px`` per 320 pixels of image width) or
         under half of the tracked landmarks agree."""
-        import cv2
-
         found = self._tracked_landmarks()
         if found is None:
             return None
         x, uv = found
         px = at_width(self.cfg.pnp_inlier_px, max(self.camera.width, REFERENCE_WIDTH))  # KLT noise grows with the size
-        mu, d = _spread(x)
-        ok, rvec, tvec, inl = cv2.solvePnPRansac((x - mu) / d, uv, self.camera.K, None, reprojectionError=px,
-                                                 iterationsCount=200, flags=cv2.SOLVEPNP_EPNP)
-        if not ok or inl is None or len(inl) < max(self.cfg.pnp_min_points, 0.5 * len(x)):
+        found = pnp_ransac(self.camera, x, uv, px)
+        if found is None or found[1].sum() < max(self.cfg.pnp_min_points, 0.5 * len(x)):
             return None
-        inl = inl.reshape(-1)
-        w2c = refine_pnp(self.camera, x[inl], uv[inl], _w2c_from_normalised(rvec, tvec, mu, d))
-        return None if w2c is None else orthonormalize(inv_pose(w2c))
+        return orthonormalize(inv_pose(found[0]))
 
     def _pnp(self, c2w: np.ndarray) -> Optional[np.ndarray]:
         """Refine a pose on the reprojection error of the tracked landmarks (inliers of the given pose)."""
@@ -573,11 +549,12 @@ class MonoFrontend:
         cam = self.camera
         return np.stack([(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z], -1)
 
-    def _add_keyframe(self, index: int, rgb: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+    def _add_keyframe(self, index: int, rgb: np.ndarray, gray: np.ndarray, c2w: np.ndarray) -> np.ndarray:
         c = self.cfg
         tr = self._tracks
         self._kf_pose[index] = np.asarray(c2w, np.float64).copy()
         self._kf_rgb[index] = rgb
+        self._moved_all = False
         # observations of known landmarks
         has = tr.lid >= 0
         for j in np.flatnonzero(has):
@@ -602,11 +579,70 @@ class MonoFrontend:
         before = self._kf_pose[index].copy()
         if c.ba:
             self._run_ba()
+        if c.loop.enabled:
+            self._close_loop(index, gray)
+            self._kf_images[index] = gray
+            while len(self._kf_images) > c.loop.max_keyframe_images:
+                self._kf_images.pop(next(iter(self._kf_images)))
         after = self._kf_pose[index]
         # move the motion model with the refined keyframe
         delta = after @ inv_pose(before)
         self.tracker.reset_motion([delta @ p for p in self.tracker.motion_history])
         return after
+
+    def _close_loop(self, index: int, gray: np.ndarray) -> None:
+        """Look for an old keyframe the camera has come back to (:mod:`fmapping.tracking.loop`); when
+        one verifies and disagrees with the chain, correct the keyframes since then (pose graph)."""
+        lc = self.cfg.loop
+        ref = self.tracker.reference
+        scale = ref.median_depth if ref is not None and np.isfinite(ref.median_depth) else self.cfg.unit_depth
+        for k in loop_candidates(self._kf_pose, index, scale, lc):
+            if k not in self._kf_images:
+                continue
+            seen = [(o[1], o[2], o[3]) for o in self._obs if o[0] == k]
+            if len(seen) < lc.min_points:
+                continue
+            lids = np.array([o[0] for o in seen], np.int64)
+            uv = np.array([o[1:] for o in seen], np.float64)
+            m = locate_in_keyframe(self.camera, self._kf_images[k], uv, np.stack([self._lm[i] for i in lids]),
+                                   self._kf_pose[k], gray, self._kf_pose[index], self.cfg.klt, lc)
+            if m is None:
+                continue
+            dt, dr = pose_distance(self._kf_pose[index], m.c2w)
+            rec = {"frame": int(index), "keyframe": int(k), "points": m.points, "inliers": m.inliers,
+                   "moved_m": dt, "moved_deg": dr}
+            if dt > lc.max_correction * scale:
+                rec["refused"] = f"correction {dt:.3g} > {lc.max_correction} x median depth {scale:.3g}"
+                self.loops.append(rec)
+                continue
+            if dt < lc.min_correction_m * scale and dr < lc.min_correction_deg:
+                return  # the chain already agrees with the old keyframe
+            rec.update(self._correct_loop(k, index, m.c2w, scale))
+            self.loops.append(rec)
+            return
+
+    def _correct_loop(self, old: int, index: int, c2w_loop: np.ndarray, scale: float) -> dict:
+        """Pose graph over the keyframes from ``old`` (fixed) to ``index``: the chain's relative poses
+        plus the loop edge ``old`` -> ``index``. Landmarks move with their first keyframe, the
+        tracker's references with theirs; non-keyframes are stored relative to their keyframe."""
+        kfs = sorted(k for k in self._kf_pose if k >= old)
+        before = [self._kf_pose[k].copy() for k in kfs]
+        edges = [(a, a + 1, inv_pose(before[a]) @ before[a + 1]) for a in range(len(kfs) - 1)]
+        edges.append((0, len(kfs) - 1, inv_pose(before[0]) @ c2w_loop))
+        after, stats = optimize_pose_graph(before, edges, [0], unit=scale)
+        corr = {}
+        for k, b, a in zip(kfs, before, after):
+            self._kf_pose[k] = orthonormalize(a)
+            corr[k] = self._kf_pose[k] @ inv_pose(b)
+        first: dict = {}
+        for o in self._obs:
+            first.setdefault(int(o[1]), int(o[0]))
+        for lid, k in first.items():
+            if k in corr:
+                self._lm[lid] = corr[k][:3, :3] @ self._lm[lid] + corr[k][:3, 3]
+        self.tracker.move_references(corr)
+        self._moved_all = True
+        return {"keyframes": len(kfs), "cost_before": stats["cost_before"], "cost_after": stats["cost_after"]}
 
     def _run_ba(self, fixed_all_but_points: bool = False) -> None:
         c = self.cfg
@@ -730,6 +766,11 @@ class MonoFrontend:
         keep = set(self._window) if window_only else self._kf_pose
         return {i: orthonormalize(self._kf_pose[k] @ rel) for i, (k, rel) in self._rel.items()
                 if k in keep and k in self._kf_pose}
+
+    def refined_poses(self) -> dict:
+        """The poses the last keyframe's update may have moved: those of the BA window's frames, or
+        every frame's after a loop closure. What to hand on to a mapper after a keyframe."""
+        return self.poses(window_only=not self._moved_all)
 
     def poses_for(self, held: dict) -> dict:
         """The front end's current poses of the frames in ``held`` ({frame: c2w} handed out

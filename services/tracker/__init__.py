@@ -354,6 +354,7 @@ class TrackerCore(ServiceCore):
             out += self._answer(f, res)
             if res.need_keyframe and not res.lost and self.opts.republish:
                 out += self._republish_refined()
+            self.counters.set("loop_closures", len(fe.loops))
         self.counters.set("waiting_frames", len(self.waiting))
         return out
 
@@ -392,7 +393,7 @@ class TrackerCore(ServiceCore):
         from fmapping.tracking.mono import moved_poses
 
         out: list[Output] = []
-        refined = self.mono.poses(window_only=True)
+        refined = self.mono.refined_poses()
         held = {s: self.own_poses[s].c2w for s in refined if s in self.own_poses}
         moved = moved_poses(held, refined, self.opts.republish_min_m, self.opts.republish_min_deg)
         for s, c2w in sorted(moved.items()):

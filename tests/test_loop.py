@@ -1,0 +1,193 @@
+"""Loop closure: the pose graph, the loop verification, the monocular front end closing a loop."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from fmapping.tracking.direct import exp_se3, inv_pose, pose_distance
+
+
+def _circle_poses(n: int, radius: float = 1.0) -> list:
+    """Cameras on a circle in the xy plane, each turned by its angle about z."""
+    out = []
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        p = np.eye(4)
+        p[:3, :3] = exp_se3(np.r_[0, 0, 0, 0.1, 0.05, a])[:3, :3]
+        p[:3, 3] = radius * np.cos(a), radius * np.sin(a), 0.1 * np.sin(3 * a)
+        out.append(p)
+    return out
+
+
+def test_pose_graph_recovers_poses_that_agree_with_every_edge():
+    """Exact chain and loop edges, start poses drifted ever more along the chain (up to 6 cm /
+    4 deg): the optimum is the true poses (the first one fixed)."""
+    from fmapping.tracking.posegraph import optimize_pose_graph
+
+    gt = _circle_poses(12)
+    edges = [(k, k + 1, inv_pose(gt[k]) @ gt[k + 1]) for k in range(11)] + [(0, 11, inv_pose(gt[0]) @ gt[11])]
+    rng = np.random.default_rng(0)
+    drift = np.eye(4)
+    start = [gt[0]]
+    for k in range(1, 12):
+        drift = drift @ exp_se3(np.r_[rng.normal(0, 0.005, 3), rng.normal(0, 0.006, 3)])
+        start.append(drift @ gt[k])
+    assert max(pose_distance(s, g)[0] for s, g in zip(start, gt)) > 0.02
+    out, stats = optimize_pose_graph(start, edges, [0], unit=1.0)
+    torch.testing.assert_close(torch.tensor(np.stack(out)), torch.tensor(np.stack(gt)), atol=1e-6, rtol=0)
+    assert stats["cost_after"] < 1e-12 < stats["cost_before"]
+
+
+def test_pose_graph_matches_a_dense_per_edge_reference_on_a_drifted_loop():
+    """Chain edges with drift in rotation and translation, an exact loop edge: the result equals a
+    slow, obvious reference (each residual from 4x4 products, ``E = inv(T_ij) inv(X_i) X_j``,
+    dense finite-difference Jacobian), and the loop's contradiction is spread over the chain."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    from fmapping.tracking.posegraph import optimize_pose_graph
+
+    n, unit = 10, 0.7
+    gt = _circle_poses(n)
+    rng = np.random.default_rng(1)
+    edges = [(k, k + 1, inv_pose(gt[k]) @ gt[k + 1] @ exp_se3(np.r_[rng.normal(0, 0.01, 3), rng.normal(0, 0.01, 3)]))
+             for k in range(n - 1)]
+    edges.append((0, n - 1, inv_pose(gt[0]) @ gt[n - 1]))
+    start = [gt[0]]
+    for i, j, t in edges[:-1]:
+        start.append(start[-1] @ t)  # the chain as tracked: all of the drift at the end
+    out, stats = optimize_pose_graph(start, edges, [0], unit=unit)
+
+    def poses_of(x):
+        ps = [start[0]]
+        for k in range(1, n):
+            d = x[6 * (k - 1): 6 * k]
+            p = np.eye(4)
+            p[:3, :3] = Rotation.from_rotvec(d[:3]).as_matrix() @ start[k][:3, :3]
+            p[:3, 3] = start[k][:3, 3] + unit * d[3:]
+            ps.append(p)
+        return ps
+
+    def residuals(x):
+        ps = poses_of(x)
+        r = []
+        for i, j, t in edges:
+            e = np.linalg.inv(t) @ np.linalg.inv(ps[i]) @ ps[j]
+            r += list(Rotation.from_matrix(e[:3, :3]).as_rotvec()) + list(e[:3, 3] / unit)
+        return np.array(r)
+
+    ref = poses_of(least_squares(residuals, np.zeros(6 * (n - 1)), method="trf", xtol=1e-12, ftol=1e-12).x)
+    torch.testing.assert_close(torch.tensor(np.stack(out)), torch.tensor(np.stack(ref)), atol=1e-6, rtol=0)
+    # the end of the chain moved most, towards where the loop edge puts it
+    before = pose_distance(start[-1], gt[-1])[0]
+    assert pose_distance(out[-1], gt[-1])[0] < 0.5 * before
+    assert stats["cost_after"] < 0.2 * stats["cost_before"]
+
+
+def test_rotation_homography_maps_points_at_infinity():
+    from fmapping.camera import PinholeCamera
+    from fmapping.tracking.loop import rotation_homography
+
+    cam = PinholeCamera(fx=250.0, fy=240.0, cx=160.0, cy=120.0, width=320, height=240)
+    a = exp_se3(np.r_[0.3, -0.1, 0.2, 0.05, 0.2, -0.1])
+    b = exp_se3(np.r_[-0.4, 0.2, 0.1, -0.1, -0.15, 0.3])
+    rng = np.random.default_rng(2)
+    dirs = rng.normal(0, 0.3, (50, 3)) + a[:3, 2] + b[:3, 2]  # in front of both
+    far = a[:3, 3] + 1e7 * dirs
+
+    def pix(c2w, x):
+        y = (x - c2w[:3, 3]) @ c2w[:3, :3]
+        return np.stack([cam.fx * y[:, 0] / y[:, 2] + cam.cx, cam.fy * y[:, 1] / y[:, 2] + cam.cy], -1)
+
+    ua, ub = pix(a, far), pix(b, far)
+    q = np.c_[ua, np.ones(len(ua))] @ rotation_homography(cam, a, b).T
+    torch.testing.assert_close(torch.tensor(q[:, :2] / q[:, 2:]), torch.tensor(ub), atol=1e-4, rtol=0)
+
+
+def _room_points(ds, frame: int):
+    """Corners of ``frame`` and their world points from the dataset's depth."""
+    from fmapping.tracking.features import KltConfig, detect_corners, to_u8
+
+    f = ds[frame]
+    gray = to_u8(f.rgb)
+    uv = detect_corners(gray, KltConfig()).astype(np.float64)
+    cam = ds.camera
+    z = f.depth[np.round(uv[:, 1]).astype(int), np.round(uv[:, 0]).astype(int)].astype(np.float64)
+    ok = z > 0
+    uv, z = uv[ok], z[ok]
+    y = np.stack([(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z], -1)
+    c2w = ds.gt_poses[frame]
+    return gray, uv, y @ c2w[:3, :3].T + c2w[:3, 3]
+
+
+def test_locate_in_keyframe_recovers_the_pose_from_an_old_keyframe(room320):
+    """Frame 12 of the synthetic room located on frame 0's corners (their GT-depth world points),
+    starting from a guess 2.9 cm / 1.5 deg off. Measured: 3.6 mm / 0.12 deg from the GT pose, 108 of 119
+    points inliers (nearest-pixel depth at the corners; frame 8: 1.1 mm / 0.04 deg, frame 16: 7 mm /
+    0.30 deg, frame 20: refused); a frame of noise is refused."""
+    from fmapping.datasets import open_dataset
+    from fmapping.tracking.features import KltConfig, to_u8
+    from fmapping.tracking.loop import LoopConfig, locate_in_keyframe
+
+    ds = open_dataset(room320)
+    old_gray, uv, world = _room_points(ds, 0)
+    gt = ds.gt_poses[12]
+    guess = gt @ exp_se3(np.r_[0.02, -0.015, 0.015, 0.015, -0.02, 0.01])
+    assert pose_distance(guess, gt)[0] > 0.025
+    m = locate_in_keyframe(ds.camera, old_gray, uv, world, ds.gt_poses[0], to_u8(ds[12].rgb), guess,
+                           KltConfig(), LoopConfig())
+    assert m is not None and m.inliers >= 0.8 * m.points
+    dt, dr = pose_distance(m.c2w, gt)
+    assert dt < 0.008 and dr < 0.25, (dt, dr)
+    noise = np.random.default_rng(3).integers(0, 256, ds[12].rgb.shape, dtype=np.uint8)
+    assert locate_in_keyframe(ds.camera, old_gray, uv, world, ds.gt_poses[0], to_u8(noise), guess,
+                              KltConfig(), LoopConfig()) is None
+
+
+@pytest.fixture(scope="module")
+def loop160(tmp_path_factory):
+    """A synthetic room whose 200 frames (160x120) go once round the room's loop and back."""
+    from fmapping.synthetic import generate_scene
+
+    root = tmp_path_factory.mktemp("loop160")
+    generate_scene(root, seed=4, frames=200, size=(160, 120), supersample=1, max_cloud_points=2000)
+    return root
+
+
+def _run_mono(ds, loop_enabled: bool):
+    from fmapping.tracking.loop import LoopConfig
+    from fmapping.tracking.mono import MonoConfig, MonoFrontend
+
+    g = ds.gt_poses
+    fe = MonoFrontend(ds.camera, None, MonoConfig(loop=LoopConfig(enabled=loop_enabled)))
+    i = 0
+    while not fe.initialized:
+        fe.bootstrap(i, ds[i].rgb, g[0], lambda k: float(np.linalg.norm(g[k][:3, 3] - g[0][:3, 3])))
+        i += 1
+    handed_on = {}
+    for k in range(i, len(ds)):
+        r = fe.track(k, ds[k].rgb)
+        if r.need_keyframe:
+            handed_on[k] = set(fe.refined_poses())
+    return fe, handed_on
+
+
+def test_mono_closes_the_loop_back_at_the_first_keyframe(loop160):
+    """The camera comes back to its start: the loop to the first keyframe closes and the drift
+    at the end of the sequence shrinks. Measured (GT-anchored, no alignment, last 10 frames):
+    8.35 cm without loop closure, 1.14 cm with (loops at frames 190 and 196, 52 and 85 inliers)."""
+    from fmapping.datasets import open_dataset
+
+    ds = open_dataset(loop160)
+    g = ds.gt_poses
+    errs = {}
+    for enabled in (False, True):
+        fe, handed_on = _run_mono(ds, enabled)
+        p = fe.poses()
+        errs[enabled] = np.mean([np.linalg.norm(p[k][:3, 3] - g[k][:3, 3]) for k in range(190, 200)])
+    assert fe.loops and fe.loops[0]["keyframe"] == 0 and fe.loops[0]["frame"] >= 150
+    # at the loop's keyframe every frame's pose is handed on, not just the BA window's
+    loop_kf = fe.loops[0]["frame"]
+    assert handed_on[loop_kf] == set(range(loop_kf + 1))
+    assert errs[True] < 0.03 and errs[True] < 0.4 * errs[False], errs
