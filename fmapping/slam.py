@@ -684,6 +684,7 @@ def run_slam(args) -> dict:
         "tracking": {str(i): run.track_info[i] for i in sorted(run.track_info)},
         "tracking_loss_events": run.loss_events,
         "loop_closures": run.frontend.loops if run.frontend is not None else [],
+        "loops_refused": run.frontend.loops_refused if run.frontend is not None else [],
         "mapper_pose_updates": run.pose_updates,
         "windows": run.window_stats,
         "mapper": mstats,

@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 
 from fmapping.camera import PinholeCamera
+from fmapping.tracking.direct import inv_pose
 from fmapping.tracking.features import REFERENCE_WIDTH, KltConfig, at_width, klt_track, pnp_ransac
 
 
@@ -123,7 +124,4 @@ def locate_in_keyframe(camera: PinholeCamera, old_gray: np.ndarray, old_uv: np.n
     n = int(inl.sum())
     if n < cfg.min_inliers or n < cfg.min_inlier_ratio * len(x):
         return None
-    c2w = np.eye(4)
-    c2w[:3, :3] = w2c[:3, :3].T
-    c2w[:3, 3] = -w2c[:3, :3].T @ w2c[:3, 3]
-    return LoopMatch(c2w, len(x), n)
+    return LoopMatch(inv_pose(w2c), len(x), n)

@@ -188,6 +188,7 @@ class MonoFrontend:
         self._anchor: Optional[Callable[[int], Optional[float]]] = None  # baseline source of the late anchor
         self.late_anchor: Optional[dict] = None  # {"frame", "factor"} once the scale was taken again (or refused)
         self.loops: list = []  # loop closures: {"frame", "keyframe", "inliers", "moved_m", "moved_deg", ...}
+        self.loops_refused: list = []  # verified loops whose correction was too large to trust
         self._kf_images: dict = {}  # keyframe index -> grey image, for loop verification (bounded)
         self._moved_all = False  # the last keyframe's update moved every keyframe (a loop closure)
 
@@ -612,8 +613,8 @@ class MonoFrontend:
             rec = {"frame": int(index), "keyframe": int(k), "points": m.points, "inliers": m.inliers,
                    "moved_m": dt, "moved_deg": dr}
             if dt > lc.max_correction * scale:
-                rec["refused"] = f"correction {dt:.3g} > {lc.max_correction} x median depth {scale:.3g}"
-                self.loops.append(rec)
+                rec["why"] = f"correction {dt:.3g} > {lc.max_correction} x median depth {scale:.3g}"
+                self.loops_refused.append(rec)
                 continue
             if dt < lc.min_correction_m * scale and dr < lc.min_correction_deg:
                 return  # the chain already agrees with the old keyframe
