@@ -13,7 +13,8 @@ verify it on the old keyframe's landmarks, and say where the current keyframe is
    ``min_inlier_ratio`` of the tracked points.
 
 The correction itself (a pose graph over the keyframes of the loop,
-:mod:`fmapping.tracking.posegraph`) is applied by :class:`~fmapping.tracking.mono.MonoFrontend`.
+:mod:`fmapping.tracking.posegraph`, then a bundle adjustment with the loop's matches) is
+applied by :class:`~fmapping.tracking.mono.MonoFrontend`.
 """
 from __future__ import annotations
 
@@ -42,6 +43,12 @@ class LoopConfig:
     inlier_px: float = 2.0  # PnP inlier threshold, per 320 pixels of image width
     min_correction_m: float = 0.002  # below this (times the median depth) and ...
     min_correction_deg: float = 0.1  # ... this, the loop agrees with the chain: nothing to correct
+    # After the pose graph, bundle-adjust the keyframes of the loop with the loop's matches as observations
+    # of the old landmarks: the pose graph bends the chain's relative poses, the BA makes them agree with the
+    # images again while the matches hold the loop closed.
+    loop_ba: bool = True
+    loop_ba_max_nfev: int = 15
+    loop_ba_keep_scale: bool = True  # scale the BA's result about the first keyframe back to the pose graph's size
     max_correction: float = 0.5  # a correction moving the keyframe more (times the median depth) is refused
     max_keyframe_images: int = 400  # keyframe images kept for verification (the oldest go first)
 
@@ -74,6 +81,8 @@ class LoopMatch:
     c2w: np.ndarray  # the current keyframe's pose in the old keyframe's map
     points: int  # old landmarks tracked into the current keyframe
     inliers: int
+    index: np.ndarray  # (inliers,) which of the old keyframe's points are the inliers ...
+    uv: np.ndarray  # (inliers, 2) ... and where they are in the current image
 
 
 def _project(camera: PinholeCamera, c2w: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -112,11 +121,12 @@ def locate_in_keyframe(camera: PinholeCamera, old_gray: np.ndarray, old_uv: np.n
     keep = (q[:, 0] >= b) & (q[:, 0] <= camera.width - 1 - b) & (q[:, 1] >= b) & (q[:, 1] <= camera.height - 1 - b)
     if keep.sum() < cfg.min_points:
         return None
-    x, q, guess = old_world[inside][keep], q[keep], guess[inside][keep]
+    idx = np.flatnonzero(inside)[keep]
+    x, q, guess = old_world[idx], q[keep], guess[inside][keep]
     uv1, ok = klt_track(warped, gray, q, klt, guess=guess)
     if ok.sum() < cfg.min_points:
         return None
-    x, uv1 = x[ok], uv1[ok].astype(np.float64)
+    idx, x, uv1 = idx[ok], x[ok], uv1[ok].astype(np.float64)
     found = pnp_ransac(camera, x, uv1, at_width(cfg.inlier_px, max(camera.width, REFERENCE_WIDTH)))
     if found is None:
         return None
@@ -124,4 +134,4 @@ def locate_in_keyframe(camera: PinholeCamera, old_gray: np.ndarray, old_uv: np.n
     n = int(inl.sum())
     if n < cfg.min_inliers or n < cfg.min_inlier_ratio * len(x):
         return None
-    return LoopMatch(inv_pose(w2c), len(x), n)
+    return LoopMatch(inv_pose(w2c), len(x), n, idx[inl], uv1[inl])

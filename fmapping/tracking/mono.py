@@ -29,8 +29,10 @@ RGB-only tracking before (and independently of) the neural map:
 4. **Loops.** At each keyframe, old keyframes the camera has come back to (by the estimated
    poses) are checked on their own landmarks and image (:mod:`fmapping.tracking.loop`); a
    verified loop that contradicts the chain is closed by a pose graph over the keyframes since
-   (:mod:`fmapping.tracking.posegraph`), landmarks moving with their first keyframe;
-   :meth:`MonoFrontend.refined_poses` then hands on every frame's pose.
+   (:mod:`fmapping.tracking.posegraph`), landmarks moving with their first keyframe, then a
+   bundle adjustment of those keyframes with the loop's matches as observations (the pose
+   graph bends the chain; the BA makes it agree with the images again), scaled back to the
+   pose graph's size; :meth:`MonoFrontend.refined_poses` then hands on every frame's pose.
 
 Non-keyframe poses are stored relative to their keyframe, so :meth:`MonoFrontend.poses`
 returns them moved with the bundle-adjusted keyframes. Poses are camera-to-world
@@ -618,18 +620,22 @@ class MonoFrontend:
                 continue
             if dt < lc.min_correction_m * scale and dr < lc.min_correction_deg:
                 return  # the chain already agrees with the old keyframe
-            rec.update(self._correct_loop(k, index, m.c2w, scale))
+            rec.update(self._correct_loop(k, index, m, lids, scale))
             self.loops.append(rec)
             return
 
-    def _correct_loop(self, old: int, index: int, c2w_loop: np.ndarray, scale: float) -> dict:
+    def _correct_loop(self, old: int, index: int, m, old_lids: np.ndarray, scale: float) -> dict:
         """Pose graph over the keyframes from ``old`` (fixed) to ``index``: the chain's relative poses
-        plus the loop edge ``old`` -> ``index``. Landmarks move with their first keyframe, the
-        tracker's references with theirs; non-keyframes are stored relative to their keyframe."""
+        plus the loop edge ``old`` -> ``index`` (``m``, a :class:`~fmapping.tracking.loop.LoopMatch` on
+        the landmarks ``old_lids`` of keyframe ``old``). Landmarks move with their first keyframe;
+        then (``loop.loop_ba``) the loop's inliers become observations of keyframe ``index`` and the
+        loop's keyframes are bundle-adjusted (the first two fixed). The tracker's references move with
+        their keyframes; non-keyframes are stored relative to their keyframe."""
+        lc = self.cfg.loop
         kfs = sorted(k for k in self._kf_pose if k >= old)
         before = [self._kf_pose[k].copy() for k in kfs]
         edges = [(a, a + 1, inv_pose(before[a]) @ before[a + 1]) for a in range(len(kfs) - 1)]
-        edges.append((0, len(kfs) - 1, inv_pose(before[0]) @ c2w_loop))
+        edges.append((0, len(kfs) - 1, inv_pose(before[0]) @ m.c2w))
         after, stats = optimize_pose_graph(before, edges, [0], unit=scale)
         corr = {}
         for k, b, a in zip(kfs, before, after):
@@ -641,9 +647,40 @@ class MonoFrontend:
         for lid, k in first.items():
             if k in corr:
                 self._lm[lid] = corr[k][:3, :3] @ self._lm[lid] + corr[k][:3, 3]
-        self.tracker.move_references(corr)
+        out = {"keyframes": len(kfs), "cost_before": stats["cost_before"], "cost_after": stats["cost_after"]}
+        if lc.loop_ba:
+            have = {int(o[1]) for o in self._obs if o[0] == index}
+            for lid, (u, v) in zip(old_lids[m.index], m.uv):
+                if int(lid) not in have:
+                    self._obs.append((index, int(lid), float(u), float(v)))
+            window, nfev = self._window, self.cfg.ba_max_nfev
+            self._window, self.cfg.ba_max_nfev = kfs, lc.loop_ba_max_nfev
+            size = lambda: np.mean([np.linalg.norm(self._kf_pose[k][:3, 3] - self._kf_pose[old][:3, 3]) for k in kfs])  # noqa: E731
+            graph_size = size()
+            try:
+                self._run_ba()
+            finally:
+                self._window, self.cfg.ba_max_nfev = window, nfev
+            out["ba_scale"] = graph_size / max(size(), 1e-12)
+            if lc.loop_ba_keep_scale:
+                self._scale_keyframes(kfs, old, out["ba_scale"])
+            out["ba_rms_px"] = self.ba_stats[-1]["rms_after_px"] if self.ba_stats else None
+        self.tracker.move_references({k: self._kf_pose[k] @ inv_pose(b) for k, b in zip(kfs, before)})
         self._moved_all = True
-        return {"keyframes": len(kfs), "cost_before": stats["cost_before"], "cost_after": stats["cost_after"]}
+        return out
+
+    def _scale_keyframes(self, kfs: list, about: int, s: float) -> None:
+        """Scale keyframes ``kfs`` and the landmarks first seen by them by ``s`` about keyframe ``about``'s centre."""
+        c0 = self._kf_pose[about][:3, 3].copy()
+        moved = set(kfs)
+        for k in kfs:
+            self._kf_pose[k] = scale_about(self._kf_pose[k], c0, s)
+        first: dict = {}
+        for o in self._obs:
+            first.setdefault(int(o[1]), int(o[0]))
+        for lid, k in first.items():
+            if k in moved:
+                self._lm[lid] = c0 + s * (self._lm[lid] - c0)
 
     def _run_ba(self, fixed_all_but_points: bool = False) -> None:
         c = self.cfg
