@@ -641,10 +641,7 @@ class MonoFrontend:
         for k, b, a in zip(kfs, before, after):
             self._kf_pose[k] = orthonormalize(a)
             corr[k] = self._kf_pose[k] @ inv_pose(b)
-        first: dict = {}
-        for o in self._obs:
-            first.setdefault(int(o[1]), int(o[0]))
-        for lid, k in first.items():
+        for lid, k in self._first_keyframes().items():
             if k in corr:
                 self._lm[lid] = corr[k][:3, :3] @ self._lm[lid] + corr[k][:3, 3]
         out = {"keyframes": len(kfs), "cost_before": stats["cost_before"], "cost_after": stats["cost_after"]}
@@ -669,16 +666,20 @@ class MonoFrontend:
         self._moved_all = True
         return out
 
+    def _first_keyframes(self) -> dict:
+        """{landmark id: the keyframe of its first remaining observation}: whose pose it moves with."""
+        first: dict = {}
+        for o in self._obs:
+            first.setdefault(int(o[1]), int(o[0]))
+        return first
+
     def _scale_keyframes(self, kfs: list, about: int, s: float) -> None:
         """Scale keyframes ``kfs`` and the landmarks first seen by them by ``s`` about keyframe ``about``'s centre."""
         c0 = self._kf_pose[about][:3, 3].copy()
         moved = set(kfs)
         for k in kfs:
             self._kf_pose[k] = scale_about(self._kf_pose[k], c0, s)
-        first: dict = {}
-        for o in self._obs:
-            first.setdefault(int(o[1]), int(o[0]))
-        for lid, k in first.items():
+        for lid, k in self._first_keyframes().items():
             if k in moved:
                 self._lm[lid] = c0 + s * (self._lm[lid] - c0)
 
