@@ -155,12 +155,12 @@ def loop160(tmp_path_factory):
     return root
 
 
-def _run_mono(ds, loop_enabled: bool):
+def _run_mono(ds, loop_enabled: bool, **loop):
     from fmapping.tracking.loop import LoopConfig
     from fmapping.tracking.mono import MonoConfig, MonoFrontend
 
     g = ds.gt_poses
-    fe = MonoFrontend(ds.camera, None, MonoConfig(loop=LoopConfig(enabled=loop_enabled)))
+    fe = MonoFrontend(ds.camera, None, MonoConfig(loop=LoopConfig(enabled=loop_enabled, **loop)))
     i = 0
     while not fe.initialized:
         fe.bootstrap(i, ds[i].rgb, g[0], lambda k: float(np.linalg.norm(g[k][:3, 3] - g[0][:3, 3])))
@@ -199,3 +199,20 @@ def test_mono_closes_the_loop_back_at_the_first_keyframe(loop160):
     assert sum(1 for kf, lid, _, _ in fe._obs if kf == loop_kf and first_kf[lid] == 0) >= 0.5 * fe.loops[0]["inliers"]
     assert fe.loops[0]["ba_rms_px"] < 1.0
     assert errs[True] < 0.03 and errs[True] < 0.4 * errs[False], errs
+
+
+def test_mono_loop_longer_than_the_ba_cap_gets_the_pose_graph_alone(loop160):
+    """``loop_ba_max_keyframes`` below the loop's length: the same loop closes without the BA
+    (no loop observations added). Measured: end error 1.14 cm (0.94 cm with the BA)."""
+    from fmapping.datasets import open_dataset
+
+    ds = open_dataset(loop160)
+    fe, _ = _run_mono(ds, True, loop_ba_max_keyframes=5)
+    assert fe.loops and not any(rec["ba"] for rec in fe.loops) and fe.loops[0]["keyframes"] > 5
+    first_kf = {}
+    for kf, lid, _, _ in fe._obs:
+        first_kf.setdefault(lid, kf)
+    assert not any(kf == fe.loops[0]["frame"] and first_kf[lid] == 0 for kf, lid, _, _ in fe._obs)
+    p = fe.poses()
+    err = np.mean([np.linalg.norm(p[k][:3, 3] - ds.gt_poses[k][:3, 3]) for k in range(190, 200)])
+    assert err < 0.03, err

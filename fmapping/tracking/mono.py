@@ -645,7 +645,8 @@ class MonoFrontend:
             if k in corr:
                 self._lm[lid] = corr[k][:3, :3] @ self._lm[lid] + corr[k][:3, 3]
         out = {"keyframes": len(kfs), "cost_before": stats["cost_before"], "cost_after": stats["cost_after"]}
-        if lc.loop_ba:
+        out["ba"] = lc.loop_ba and len(kfs) <= lc.loop_ba_max_keyframes
+        if out["ba"]:
             have = {int(o[1]) for o in self._obs if o[0] == index}
             for lid, (u, v) in zip(old_lids[m.index], m.uv):
                 if int(lid) not in have:
