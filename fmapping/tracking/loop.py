@@ -8,9 +8,9 @@ verify it on the old keyframe's landmarks, and say where the current keyframe is
    pose proximity is enough to propose a loop, the images decide it.
 2. **Verification** (:func:`locate_in_keyframe`): the landmarks the old keyframe observed are
    projected into the current keyframe with its (drifted) pose as KLT's guess and tracked from
-   the old keyframe's image, rotated into the current view first; PnP + RANSAC on their world positions gives the current
-   keyframe's pose in the old map. Accepted with at least ``min_inliers`` inliers making up
-   ``min_inlier_ratio`` of the tracked points.
+   the old keyframe's image, rotated into the current view first; PnP + RANSAC on their world
+   positions gives the current keyframe's pose in the old map. Accepted with at least
+   ``min_inliers`` inliers making up ``min_inlier_ratio`` of the tracked points.
 
 The correction itself (a pose graph over the keyframes of the loop,
 :mod:`fmapping.tracking.posegraph`, then a bundle adjustment with the loop's matches) is

@@ -55,7 +55,7 @@ from fmapping.tracking.features import (
     two_view_init, two_view_known_baseline,
 )
 from fmapping.tracking.frontend import DirectTracker, TrackerConfig, TrackResult
-from fmapping.tracking.loop import LoopConfig, locate_in_keyframe, loop_candidates
+from fmapping.tracking.loop import LoopConfig, LoopMatch, locate_in_keyframe, loop_candidates
 from fmapping.tracking.posegraph import optimize_pose_graph
 
 
@@ -595,7 +595,7 @@ class MonoFrontend:
 
     def _close_loop(self, index: int, gray: np.ndarray) -> None:
         """Look for an old keyframe the camera has come back to (:mod:`fmapping.tracking.loop`); when
-        one verifies and disagrees with the chain, correct the keyframes since then (pose graph)."""
+        one verifies and disagrees with the chain, correct the keyframes since then (:meth:`_correct_loop`)."""
         lc = self.cfg.loop
         ref = self.tracker.reference
         scale = ref.median_depth if ref is not None and np.isfinite(ref.median_depth) else self.cfg.unit_depth
@@ -624,13 +624,14 @@ class MonoFrontend:
             self.loops.append(rec)
             return
 
-    def _correct_loop(self, old: int, index: int, m, old_lids: np.ndarray, scale: float) -> dict:
+    def _correct_loop(self, old: int, index: int, m: LoopMatch, old_lids: np.ndarray, scale: float) -> dict:
         """Pose graph over the keyframes from ``old`` (fixed) to ``index``: the chain's relative poses
         plus the loop edge ``old`` -> ``index`` (``m``, a :class:`~fmapping.tracking.loop.LoopMatch` on
         the landmarks ``old_lids`` of keyframe ``old``). Landmarks move with their first keyframe;
-        then (``loop.loop_ba``) the loop's inliers become observations of keyframe ``index`` and the
-        loop's keyframes are bundle-adjusted (the first two fixed). The tracker's references move with
-        their keyframes; non-keyframes are stored relative to their keyframe."""
+        then (``loop.loop_ba``, loops up to ``loop_ba_max_keyframes``) the loop's inliers become
+        observations of keyframe ``index``, the loop's keyframes are bundle-adjusted (the first two
+        fixed) and scaled back to the pose graph's size (``loop_ba_keep_scale``). The tracker's
+        references move with their keyframes; non-keyframes are stored relative to their keyframe."""
         lc = self.cfg.loop
         kfs = sorted(k for k in self._kf_pose if k >= old)
         before = [self._kf_pose[k].copy() for k in kfs]
@@ -651,21 +652,20 @@ class MonoFrontend:
             for lid, (u, v) in zip(old_lids[m.index], m.uv):
                 if int(lid) not in have:
                     self._obs.append((index, int(lid), float(u), float(v)))
-            window, nfev = self._window, self.cfg.ba_max_nfev
-            self._window, self.cfg.ba_max_nfev = kfs, lc.loop_ba_max_nfev
-            size = lambda: np.mean([np.linalg.norm(self._kf_pose[k][:3, 3] - self._kf_pose[old][:3, 3]) for k in kfs])  # noqa: E731
-            graph_size = size()
-            try:
-                self._run_ba()
-            finally:
-                self._window, self.cfg.ba_max_nfev = window, nfev
-            out["ba_scale"] = graph_size / max(size(), 1e-12)
+            graph_size = self._spread_about(kfs, old)
+            self._run_ba(window=kfs, max_nfev=lc.loop_ba_max_nfev)
+            out["ba_scale"] = graph_size / max(self._spread_about(kfs, old), 1e-12)
             if lc.loop_ba_keep_scale:
                 self._scale_keyframes(kfs, old, out["ba_scale"])
             out["ba_rms_px"] = self.ba_stats[-1]["rms_after_px"] if self.ba_stats else None
         self.tracker.move_references({k: self._kf_pose[k] @ inv_pose(b) for k, b in zip(kfs, before)})
         self._moved_all = True
         return out
+
+    def _spread_about(self, kfs: list, about: int) -> float:
+        """Mean distance of the centres of keyframes ``kfs`` from keyframe ``about``'s."""
+        c0 = self._kf_pose[about][:3, 3]
+        return float(np.mean([np.linalg.norm(self._kf_pose[k][:3, 3] - c0) for k in kfs]))
 
     def _first_keyframes(self) -> dict:
         """{landmark id: the keyframe of its first remaining observation}: whose pose it moves with."""
@@ -684,9 +684,12 @@ class MonoFrontend:
             if k in moved:
                 self._lm[lid] = c0 + s * (self._lm[lid] - c0)
 
-    def _run_ba(self, fixed_all_but_points: bool = False) -> None:
+    def _run_ba(self, fixed_all_but_points: bool = False, window: Optional[list] = None,
+                max_nfev: Optional[int] = None) -> None:
+        """Bundle adjustment of the keyframes ``window`` (default: the BA window; the first two fixed)
+        and the landmarks they observe, at most ``max_nfev`` iterations (default ``ba_max_nfev``)."""
         c = self.cfg
-        win = list(self._window)
+        win = list(self._window if window is None else window)
         if not self._obs:
             return
         obs = np.array(self._obs, dtype=np.float64)
@@ -718,7 +721,7 @@ class MonoFrontend:
         t0 = time.perf_counter()
         res = bundle_adjust(self.camera, poses, fixed, np.stack([self._lm[i] for i in lids]),
                             np.array([kf_pos[int(k)] for k in obs[:, 0]]), inv, obs[:, 2:4],
-                            c.ba_huber_px, c.ba_max_nfev)
+                            c.ba_huber_px, c.ba_max_nfev if max_nfev is None else max_nfev)
         for k, p in zip(win, res.poses[: len(win)]):
             self._kf_pose[k] = p
         for i, p in zip(lids, res.points):
