@@ -134,6 +134,14 @@ class PinholeCamera:
         v = self.fy * pts_cam[..., 1] / zs + self.cy
         return torch.stack([u, v], -1), z
 
+    def world_to_pixels(self, c2w: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World points (M, 3) -> pixels (M, 2) and camera z (M,) in the view ``c2w`` (numpy)."""
+        r, t = c2w[:3, :3], c2w[:3, 3]
+        pc = (pts - t) @ r
+        z = pc[:, 2]
+        zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
+        return np.stack([self.fx * pc[:, 0] / zs + self.cx, self.fy * pc[:, 1] / zs + self.cy], -1), z
+
     def in_image(self, uv: Tensor, margin: float = 0.0) -> Tensor:
         return (
             (uv[..., 0] >= -0.5 + margin) & (uv[..., 0] <= self.width - 0.5 - margin)

@@ -315,16 +315,6 @@ def voxel_downsample(points: np.ndarray, colors: np.ndarray, voxel: float) -> tu
     return out_p / counts[:, None], out_c / counts[:, None]
 
 
-def _project(c2w: np.ndarray, cam: PinholeCamera, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World points (M, 3) -> pixel (M, 2) and camera z (M,) in view ``c2w``."""
-    r, t = c2w[:3, :3], c2w[:3, 3]
-    pc = (pts - t) @ r
-    z = pc[:, 2]
-    zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
-    uv = np.stack([cam.fx * pc[:, 0] / zs + cam.cx, cam.fy * pc[:, 1] / zs + cam.cy], -1)
-    return uv, z
-
-
 def _lookup_nearest(img: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Nearest-pixel values of ``img`` (H, W[, C]) at ``uv`` and the in-image mask."""
     h, w = img.shape[:2]
@@ -430,7 +420,7 @@ def export_point_cloud(
             for j in others:
                 if not np.isfinite(dist[j]):
                     continue
-                uvj, zj = _project(plist[j], cam_lo, pts)
+                uvj, zj = cam_lo.world_to_pixels(plist[j], pts)
                 dj, okj = _lookup_nearest(renders[j]["depth"], uvj)
                 aj, _ = _lookup_nearest(renders[j]["acc"], uvj)
                 okj &= (zj > near) & (aj >= min_acc)
@@ -541,7 +531,7 @@ def export_mesh(
         todo = np.flatnonzero(~seen)
         if len(todo) == 0:
             break
-        uv, z = _project(pose, camera, verts[todo])
+        uv, z = camera.world_to_pixels(pose, verts[todo])
         ok = (z > near) & (z < far) & camera.in_image(torch.from_numpy(uv)).numpy()
         if render is not None and ok.any():
             rd = render(pose, cam_lo)

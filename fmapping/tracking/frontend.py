@@ -138,10 +138,13 @@ class DirectTracker:
         """Replace the motion history (e.g. with mapper-refined poses of the last two frames)."""
         self._history = [orthonormalize(p) for p in c2w_list[-2:]]
 
+    def _references(self) -> list:
+        """Every reference held (the recent keyframes and the current one), each once."""
+        return list({id(r): r for r in [*self.recent, self.reference] if r is not None}.values())
+
     def rescale(self, center: np.ndarray, s: float) -> None:
         """Scale the world about ``center`` by ``s``: keyframe poses and points, the motion model."""
-        refs = {id(r): r for r in [*self.recent, self.reference] if r is not None}
-        for r in refs.values():
+        for r in self._references():
             r.c2w = scale_about(r.c2w, center, s)
             r.points = r.points * s
             r.median_depth *= s
@@ -150,8 +153,7 @@ class DirectTracker:
     def move_references(self, moves: dict) -> None:
         """Move the references of keyframes ``moves`` ({frame index: 4x4 T}) to ``T @ c2w`` (their
         points stay in the camera frame), e.g. after a loop closure corrected those keyframes."""
-        refs = {id(r): r for r in [*self.recent, self.reference] if r is not None}
-        for r in refs.values():
+        for r in self._references():
             if r.frame_index in moves:
                 r.c2w = orthonormalize(moves[r.frame_index] @ r.c2w)
 
