@@ -44,7 +44,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass, field as dc_field
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 import torch
@@ -202,10 +202,19 @@ def aabb_from_depth(c2w: np.ndarray, depths: list, camera: PinholeCamera, margin
     return np.stack([np.percentile(allp, 0.5, 0) - margin, np.percentile(allp, 99.5, 0) + margin])
 
 
-class Mapper:
-    """Incremental neural-field mapper. See the module docstring for the stages."""
+class MappingCancelled(Exception):
+    """Raised between two optimisation iterations when the mapper's ``should_stop()`` says so.
+    The update in progress is left half-done: resume from a checkpoint taken between updates."""
 
-    def __init__(self, cfg: MapperConfig, camera: PinholeCamera, aabb=None, device=None):
+
+class Mapper:
+    """Incremental neural-field mapper. See the module docstring for the stages.
+
+    ``should_stop()``, when given, is asked before every optimisation iteration; True raises
+    :class:`MappingCancelled` (a service stopping on a signal must not wait for a long update)."""
+
+    def __init__(self, cfg: MapperConfig, camera: PinholeCamera, aabb=None, device=None,
+                 should_stop: Optional[Callable[[], bool]] = None):
         cfg.validate()
         if camera.dist is not None:
             raise ValueError("Mapper: camera must be undistorted (dist=None); undistort the images first")
@@ -240,6 +249,7 @@ class Mapper:
         self._stats: list[WindowStats] = []
         self._iterations = 0
         self._finished = False
+        self._should_stop = should_stop
 
     # ================================================================= public API
     def add_frame(self, rgb: np.ndarray, c2w: Optional[np.ndarray], timestamp: float = 0.0,
@@ -608,7 +618,11 @@ class Mapper:
                    sw_window: int = 0, t0: Optional[float] = None) -> WindowStats:
         t0 = time.perf_counter() if t0 is None else t0
         imgs = self._images_f(ids)
-        logs = [self._step(ids, imgs, mode, n_coarse, n_fine, sw_window) for _ in range(iters)]
+        logs = []
+        for _ in range(iters):
+            if self._should_stop is not None and self._should_stop():
+                raise MappingCancelled(f"{kind} update stopped after {len(logs)} of {iters} iterations")
+            logs.append(self._step(ids, imgs, mode, n_coarse, n_fine, sw_window))
         st = WindowStats(
             index=len(self._stats), kind=kind, seconds=time.perf_counter() - t0, iterations=iters,
             loss=float(np.mean([x["loss"] for x in logs[-5:]])) if logs else float("nan"),

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import faulthandler
 import json
 import logging
 import os
@@ -214,7 +215,10 @@ def exit_process(code: Optional[int]) -> None:
 
 def run_main(main: Callable[[], Optional[int]], prog: str) -> None:
     """``python -m <prog>``: run ``main()``; a missing file or bad value is a one-line error
-    (exit code 2); then :func:`exit_process`."""
+    (exit code 2); then :func:`exit_process`. ``kill -USR1 <pid>`` prints every thread's stack
+    to stderr (a service that hangs shows where)."""
+    if hasattr(signal, "SIGUSR1"):
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
     try:
         code = main()
     except (FileNotFoundError, ValueError) as e:
@@ -424,32 +428,23 @@ def thin_victim(arrivals: Sequence[int]) -> int:
     return 1 + gaps.index(min(gaps))
 
 
-class ServiceInterrupted(BaseException):
-    """Raised in the main thread by the first SIGINT / SIGTERM while :attr:`Shutdown.interruptible`
-    is set (a long library call, e.g. a mapping window, must not delay shutdown by seconds)."""
-
-
 class Shutdown:
     """A stop flag set by SIGINT / SIGTERM (and optionally by the parent process going away).
 
-    While ``interruptible`` is True the first signal also raises :class:`ServiceInterrupted`
-    in the main thread, aborting the call in progress; the service then writes what it has."""
+    The handler only sets the flag. Long library calls poll :attr:`requested` (the mapper
+    between iterations) rather than being broken off by an exception raised at an arbitrary
+    point, which can leave a lock held (a logging handler's, a counter's) and hang the exit."""
 
     def __init__(self, install: bool = True, watch_parent: bool = False):
         self.event = threading.Event()
         self.reason = ""
-        self.interruptible = False
         self._parent = os.getppid() if watch_parent else None
         if install and threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 signal.signal(sig, self._handler)
 
     def _handler(self, signum, _frame) -> None:
-        first = not self.event.is_set()
         self.set(signal.Signals(signum).name)
-        if first and self.interruptible:
-            self.interruptible = False
-            raise ServiceInterrupted(self.reason)
 
     def set(self, reason: str = "requested") -> None:
         if not self.event.is_set():

@@ -216,3 +216,46 @@ def test_mono_loop_longer_than_the_ba_cap_gets_the_pose_graph_alone(loop160):
     p = fe.poses()
     err = np.mean([np.linalg.norm(p[k][:3, 3] - ds.gt_poses[k][:3, 3]) for k in range(190, 200)])
     assert err < 0.03, err
+
+
+def test_scaling_keyframes_moves_their_frames_landmarks_and_references_alike(loop160):
+    """The loop BA's scale-back (``_scale_keyframes``) is a similarity of that part of the world:
+    every frame stored relative to a scaled keyframe, every landmark first seen by one, and the
+    tracker's reference of one end where scaling their old world positions puts them."""
+    from fmapping.datasets import open_dataset
+    from fmapping.tracking.direct import scale_about
+    from fmapping.tracking.loop import LoopConfig
+    from fmapping.tracking.mono import MonoConfig, MonoFrontend
+
+    ds = open_dataset(loop160)
+    g = ds.gt_poses
+    fe = MonoFrontend(ds.camera, None, MonoConfig(loop=LoopConfig(enabled=False)))
+    i = 0
+    while not fe.initialized:
+        fe.bootstrap(i, ds[i].rgb, g[0], lambda k: float(np.linalg.norm(g[k][:3, 3] - g[0][:3, 3])))
+        i += 1
+    for k in range(i, 60):
+        fe.track(k, ds[k].rgb)
+    kfs = sorted(fe.keyframe_poses())
+    moved = kfs[len(kfs) // 2:]
+    about, s = moved[0], 1.25
+    c0 = fe.keyframe_poses()[about][:3, 3].copy()
+    poses, lms = fe.poses(), [p.copy() for p in fe._lm]
+    ref = fe.tracker.reference
+    assert ref.frame_index in moved
+    ref_world = ref.points @ ref.c2w[:3, :3].T + ref.c2w[:3, 3]
+    first = fe._first_keyframes()
+    fe._scale_keyframes(moved, about, s)
+    after = fe.poses()
+    stored_at = {f: kf for f, (kf, _) in fe._rel.items()}
+    n = 0
+    for f, p in poses.items():
+        want = scale_about(p, c0, s) if stored_at[f] in moved else p
+        np.testing.assert_allclose(after[f], want, atol=1e-9)
+        n += stored_at[f] in moved and stored_at[f] != f
+    assert n > 10  # non-keyframes among them (the part the old code left unscaled)
+    for lid, p in enumerate(lms):
+        want = c0 + s * (p - c0) if first.get(lid) in moved else p
+        np.testing.assert_allclose(fe._lm[lid], want, atol=1e-9)
+    ref = fe.tracker.reference
+    np.testing.assert_allclose(ref.points @ ref.c2w[:3, :3].T + ref.c2w[:3, 3], c0 + s * (ref_world - c0), atol=1e-9)

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from fmapping.field import FieldConfig
-from fmapping.mapper import Mapper, MapperConfig, aabb_from_poses
+from fmapping.mapper import Mapper, MapperConfig, MappingCancelled, aabb_from_poses
 from fmapping.metrics import psnr, recon_metrics
 from fmapping.synthetic import camera_for_size, gt_cloud, make_scene, make_trajectory, render_view, visible_mask
 
@@ -185,6 +185,24 @@ def test_save_restore_exact():
         torch.testing.assert_close(pa, pb, rtol=0, atol=0)
     fa, fb = a.finish(), b.finish()
     assert fa.loss == fb.loss
+
+
+def test_should_stop_cancels_between_iterations():
+    """``should_stop`` is asked before every iteration: the update stops after exactly as many
+    iterations as it allowed, and a mapper whose ``should_stop`` never fires runs them all."""
+    scene, cam, c2w, views = tiny_scene(6)
+    cfg = tiny_config(init_frames=4, init_iters_per_round=50)
+    asked = []
+    m = Mapper(cfg, cam, aabb=room_aabb(scene), should_stop=lambda: asked.append(1) or len(asked) > 7)
+    feed(m, views, c2w, 0, 3)
+    assert not asked  # no update yet, nothing asked
+    with pytest.raises(MappingCancelled, match="after 7 of 50 iterations"):
+        m.add_frame(views[3][0], c2w[3])
+    assert m.stats()["iterations"] == 7 and not m.initialized
+    calls = []
+    full = Mapper(cfg, cam, aabb=room_aabb(scene), should_stop=lambda: calls.append(1) and False)
+    st = feed(full, views, c2w, 0, 4)
+    assert st.kind == "init" and st.iterations == 100 and len(calls) == 100
 
 
 def _rot_deg(a, b):

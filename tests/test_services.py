@@ -719,11 +719,18 @@ def test_sigterm_during_a_mapping_window_stops_within_5_seconds(dataset, tmp_pat
         while not busy_in_init():
             assert p.poll() is None and time.monotonic() < end, "mapper never started its init stage"
             time.sleep(0.05)
+        p.send_signal(signal.SIGUSR1)  # a stack dump of every thread, and the service goes on
+        while "_run_module_as_main" not in log_path.read_text().partition("Current thread")[2]:
+            assert p.poll() is None and time.monotonic() < end, "no stack dump on SIGUSR1"
+            time.sleep(0.05)
+        assert " in beat" in log_path.read_text()  # the heartbeat thread is in it too
         t0 = time.monotonic()
         p.send_signal(signal.SIGTERM)
         try:
             rc = p.wait(timeout=30)
         except subprocess.TimeoutExpired:
+            p.send_signal(signal.SIGUSR1)  # the service prints every thread's stack (services.common.run_main)
+            time.sleep(2.0)
             raise AssertionError("mapper still running 30 s after SIGTERM; its log:\n" + log_path.read_text())
         took = time.monotonic() - t0
         log = log_path.read_text()

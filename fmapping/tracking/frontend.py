@@ -142,13 +142,16 @@ class DirectTracker:
         """Every reference held (the recent keyframes and the current one), each once."""
         return list({id(r): r for r in [*self.recent, self.reference] if r is not None}.values())
 
-    def rescale(self, center: np.ndarray, s: float) -> None:
-        """Scale the world about ``center`` by ``s``: keyframe poses and points, the motion model."""
+    def rescale(self, center: np.ndarray, s: float, frames: Optional[set] = None) -> None:
+        """Scale the world about ``center`` by ``s``: keyframe poses and points, the motion model.
+        With ``frames``, only the references of those frame indices (the motion model stays)."""
         for r in self._references():
-            r.c2w = scale_about(r.c2w, center, s)
-            r.points = r.points * s
-            r.median_depth *= s
-        self._history = [scale_about(p, center, s) for p in self._history]
+            if frames is None or r.frame_index in frames:
+                r.c2w = scale_about(r.c2w, center, s)
+                r.points = r.points * s
+                r.median_depth *= s
+        if frames is None:
+            self._history = [scale_about(p, center, s) for p in self._history]
 
     def move_references(self, moves: dict) -> None:
         """Move the references of keyframes ``moves`` ({frame index: 4x4 T}) to ``T @ c2w`` (their

@@ -434,11 +434,16 @@ class MonoFrontend:
         c0 = self._c2w0[:3, 3]
         self._kf_pose = {k: scale_about(p, c0, s) for k, p in self._kf_pose.items()}
         self._lm = [c0 + s * (np.asarray(p) - c0) for p in self._lm]
-        for i, (k, rel) in self._rel.items():
-            rel = rel.copy()
-            rel[:3, 3] *= s
-            self._rel[i] = (k, rel)
+        self._scale_relative(s)
         self.tracker.rescale(c0, s)
+
+    def _scale_relative(self, s: float, kfs: Optional[set] = None) -> None:
+        """Scale the translations of the frames stored relative to keyframes ``kfs`` (default all)."""
+        for i, (k, rel) in self._rel.items():
+            if kfs is None or k in kfs:
+                rel = rel.copy()
+                rel[:3, 3] *= s
+                self._rel[i] = (k, rel)
 
     # ================================================================== internals
     def _klt(self, gray: np.ndarray) -> None:
@@ -655,10 +660,10 @@ class MonoFrontend:
             graph_size = self._spread_about(kfs, old)
             self._run_ba(window=kfs, max_nfev=lc.loop_ba_max_nfev)
             out["ba_scale"] = graph_size / max(self._spread_about(kfs, old), 1e-12)
-            if lc.loop_ba_keep_scale:
-                self._scale_keyframes(kfs, old, out["ba_scale"])
             out["ba_rms_px"] = self.ba_stats[-1]["rms_after_px"] if self.ba_stats else None
         self.tracker.move_references({k: self._kf_pose[k] @ inv_pose(b) for k, b in zip(kfs, before)})
+        if out["ba"] and lc.loop_ba_keep_scale:
+            self._scale_keyframes(kfs, old, out["ba_scale"])
         self._moved_all = True
         return out
 
@@ -675,7 +680,9 @@ class MonoFrontend:
         return first
 
     def _scale_keyframes(self, kfs: list, about: int, s: float) -> None:
-        """Scale keyframes ``kfs`` and the landmarks first seen by them by ``s`` about keyframe ``about``'s centre."""
+        """Scale what belongs to keyframes ``kfs`` by ``s`` about keyframe ``about``'s centre: their
+        poses, the landmarks first seen by them, the frames stored relative to them, and the
+        tracker's references of them (as :meth:`rescale` does for the whole world)."""
         c0 = self._kf_pose[about][:3, 3].copy()
         moved = set(kfs)
         for k in kfs:
@@ -683,6 +690,8 @@ class MonoFrontend:
         for lid, k in self._first_keyframes().items():
             if k in moved:
                 self._lm[lid] = c0 + s * (self._lm[lid] - c0)
+        self._scale_relative(s, moved)
+        self.tracker.rescale(c0, s, frames=moved)
 
     def _run_ba(self, fixed_all_but_points: bool = False, window: Optional[list] = None,
                 max_nfev: Optional[int] = None) -> None:

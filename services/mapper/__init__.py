@@ -95,11 +95,12 @@ class MapperCore(ServiceCore):
     CHANNELS = {"frames": P.Frame, "poses": P.Pose, "control": P.Control}
 
     def __init__(self, cfg, opts: Optional[MapperServiceOptions] = None, counters=None, device=None,
-                 on_bad_input=None, clock=time.monotonic):
+                 on_bad_input=None, clock=time.monotonic, should_stop=None):
         from fmapping.mapper import MapperConfig
 
         super().__init__(counters, on_bad_input)
         self.clock = clock  # for the pose timeout (injectable in tests)
+        self.should_stop = should_stop  # asked between optimisation iterations (fmapping.mapper.MappingCancelled)
         self._arrived: dict[int, float] = {}
         self.opts = (opts or MapperServiceOptions()).validate()
         self.cfg = cfg if cfg is not None else MapperConfig()
@@ -117,7 +118,7 @@ class MapperCore(ServiceCore):
         self.latest_field: Optional[P.FieldSnapshot] = None
         self.latest_field_bytes: Optional[bytes] = None
         self.latest_points: Optional[P.PointsSnapshot] = None
-        self.interrupted = False  # set by the shell when a signal aborted an update half-way
+        self.interrupted = False  # set by the shell when a stop request cancelled an update half-way
         self.paused = False
         self.finished = False
         self._last_points = time.monotonic()  # the first points snapshot comes one interval after start
@@ -227,7 +228,8 @@ class MapperCore(ServiceCore):
             from fmapping.camera import PinholeCamera
             from fmapping.mapper import Mapper
 
-            self.mapper = Mapper(self.cfg, PinholeCamera.from_dict(self.camera_dict), device=self.device)
+            self.mapper = Mapper(self.cfg, PinholeCamera.from_dict(self.camera_dict), device=self.device,
+                                 should_stop=self.should_stop)
 
     def _integrate(self) -> list[Output]:
         out: list[Output] = []
@@ -341,7 +343,9 @@ class MapperCore(ServiceCore):
             if pts is not None:
                 out.append(("points", pts))
         if self.out is not None:
+            t0 = time.perf_counter()
             self.write_outputs(final=True)
+            log.info("wrote the final map, mesh and trajectory in %.2f s", time.perf_counter() - t0)
         if self.checkpoint_path is not None and self.checkpoint_path.exists() and not self.opts.keep_checkpoint:
             self.checkpoint_path.unlink()
         return out
@@ -508,7 +512,8 @@ class MapperCore(ServiceCore):
         if svc.get("pose_source") != self.opts.pose_source:
             log.warning("checkpoint %s was made with pose source %s, now %s", path, svc.get("pose_source"),
                         self.opts.pose_source)
-        mapper = Mapper(self.cfg, PinholeCamera.from_dict(svc["camera"]), device=self.device)
+        mapper = Mapper(self.cfg, PinholeCamera.from_dict(svc["camera"]), device=self.device,
+                        should_stop=self.should_stop)
         mapper.load_state_dict(state["mapper"])
         self.mapper = mapper
         self.camera_dict = dict(svc["camera"])

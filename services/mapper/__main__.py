@@ -15,8 +15,8 @@ from __future__ import annotations
 import argparse
 import time
 
-from services.common import (Service, ServiceInterrupted, add_common_args, run_main, service_parser, set_torch_threads,
-                             setup_logging)
+from fmapping.mapper import MappingCancelled
+from services.common import Service, add_common_args, run_main, service_parser, set_torch_threads, setup_logging
 from services.mapper import POSE_SOURCES, MapperCore, MapperServiceOptions, load_mapper_config
 
 
@@ -72,7 +72,9 @@ def main(argv=None, session=None, keys=None) -> int:
 
 
 def serve(svc: Service, cfg, opts: MapperServiceOptions, args) -> int:
-    core = MapperCore(cfg, opts, counters=svc.counters, on_bad_input=svc.report_bad_input)
+    # a stop request (signal, parent gone) cancels a long update between two iterations
+    core = MapperCore(cfg, opts, counters=svc.counters, on_bad_input=svc.report_bad_input,
+                      should_stop=lambda: svc.shutdown.requested)
     if opts.resume and core.load_checkpoint():
         svc.log.info("resumed from %s at frame %d (field version %d)", core.resumed_from, core.ack, core.version)
     keys = svc.keys
@@ -93,6 +95,10 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args) -> int:
         svc.report_core(core, state, lag=core.lag)
         svc.counters.set("queued_frames", svc.inbox.size("frames"))
 
+    # torch.optim imports torch._dynamo on first use (0.9 s here, seconds on a busy machine):
+    # pay for it now rather than inside the first update, where a stop request would wait for it
+    import torch._dynamo  # noqa: F401
+
     report("running")
     svc.start()
     if core.latest_field is not None:
@@ -101,7 +107,6 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args) -> int:
     while not svc.shutdown.requested and not core.finished:
         item = svc.inbox.get(timeout=0.1)
         try:
-            svc.shutdown.interruptible = True  # a signal aborts a long window instead of waiting for it
             if item is not None:
                 channel, (key, data) = item
                 if channel == "control":
@@ -115,15 +120,13 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args) -> int:
                 else:
                     publish(core.handle(channel, data, key))
             publish(core.tick())
-        except ServiceInterrupted:
+        except MappingCancelled:
             interrupted = core.interrupted = True
             break
         except Exception as e:  # a library failure: report it, keep serving
             svc.counters.inc("errors")
             svc.status.error(f"{type(e).__name__}: {e}")
             svc.log.exception("mapper step failed")
-        finally:
-            svc.shutdown.interruptible = False
         report("paused" if core.paused else None)
     if not core.finished or interrupted:  # SIGINT / SIGTERM: no closing optimisation, but keep the work
         report("finishing")
