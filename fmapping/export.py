@@ -35,6 +35,7 @@ import torch
 from torch import Tensor
 
 from fmapping.camera import PinholeCamera
+from fmapping.cancel import StopFn, check_stop
 from fmapping.render import alpha_to_weights, raw_to_alpha, render_image, sample_deltas
 
 RenderFn = Callable[[np.ndarray, PinholeCamera], dict]
@@ -345,6 +346,7 @@ def export_point_cloud(
     fast: bool = True,
     node_grid: bool = True,
     color_samples: Optional[int] = 4,
+    should_stop: StopFn = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Coloured point cloud of the map seen from ``poses``.
 
@@ -370,7 +372,8 @@ def export_point_cloud(
     is coloured with the renderer's weight threshold and averaged, as the reference.
     ``fast=False``: the generic renderer (:meth:`Mapper.render` / :func:`render_image`),
     the slow reference. A Mapper renders with its own ``near`` / ``far`` / box (``near``
-    here is only the filter).
+    here is only the filter). ``should_stop`` is asked before each view is rendered
+    (:mod:`fmapping.cancel`).
     """
     keys = list(poses.keys()) if isinstance(poses, dict) else list(range(len(poses)))
     plist = [np.asarray(poses[k], np.float64) for k in keys]
@@ -389,7 +392,10 @@ def export_point_cloud(
                                         color_samples=color_samples, use_nodes=node_grid, defer_color=defer)
     else:
         render = _render_fn(source, near, far, n_samples, n_importance)
-    renders = [render(p, cam_lo) for p in plist]
+    renders = []
+    for p in plist:
+        check_stop(should_stop, "point cloud export")
+        renders.append(render(p, cam_lo))
     centres = np.stack([p[:3, 3] for p in plist])
     uv = cam_lo.pixel_grid(dtype=torch.float64).numpy()
     dirs = np.stack([(uv[:, 0] - cam_lo.cx) / cam_lo.fx, (uv[:, 1] - cam_lo.cy) / cam_lo.fy, np.ones(len(uv))], -1)
@@ -506,6 +512,7 @@ def export_mesh(
     far: float = 10.0,
     visibility_tol: float = 0.05,
     stride: int = 4,
+    should_stop: StopFn = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Marching-cubes mesh of the field, culled to what the cameras at ``poses`` saw.
 
@@ -515,7 +522,8 @@ def export_mesh(
     ``visibility_tol`` (relative) behind the rendered depth at its pixel (renders at
     1/``stride`` resolution). Faces with any unseen vertex are dropped. Returns
     vertices (V, 3) float64, faces (F, 3) int64 and vertex colours (V, 3) uint8 (the
-    field's colour at the vertex).
+    field's colour at the vertex). ``should_stop`` is asked before each pose's test
+    (:mod:`fmapping.cancel`).
     """
     from skimage.measure import marching_cubes
 
@@ -531,6 +539,7 @@ def export_mesh(
         todo = np.flatnonzero(~seen)
         if len(todo) == 0:
             break
+        check_stop(should_stop, "mesh export")
         uv, z = camera.world_to_pixels(pose, verts[todo])
         ok = (z > near) & (z < far) & camera.in_image(torch.from_numpy(uv)).numpy()
         if render is not None and ok.any():

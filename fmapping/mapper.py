@@ -44,13 +44,14 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass, field as dc_field
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from fmapping.camera import PinholeCamera
+from fmapping.cancel import StopFn, check_stop
 from fmapping.device import pick_device
 from fmapping.field import FieldConfig, build_field
 from fmapping.geometry import se3_exp, se3_inverse
@@ -202,19 +203,15 @@ def aabb_from_depth(c2w: np.ndarray, depths: list, camera: PinholeCamera, margin
     return np.stack([np.percentile(allp, 0.5, 0) - margin, np.percentile(allp, 99.5, 0) + margin])
 
 
-class MappingCancelled(Exception):
-    """Raised between two optimisation iterations when the mapper's ``should_stop()`` says so.
-    The update in progress is left half-done: resume from a checkpoint taken between updates."""
-
-
 class Mapper:
     """Incremental neural-field mapper. See the module docstring for the stages.
 
     ``should_stop()``, when given, is asked before every optimisation iteration; True raises
-    :class:`MappingCancelled` (a service stopping on a signal must not wait for a long update)."""
+    :class:`fmapping.cancel.Cancelled` and leaves the update half-done (a service stopping on a
+    signal must not wait for a long update; it resumes from a checkpoint taken between updates)."""
 
     def __init__(self, cfg: MapperConfig, camera: PinholeCamera, aabb=None, device=None,
-                 should_stop: Optional[Callable[[], bool]] = None):
+                 should_stop: StopFn = None):
         cfg.validate()
         if camera.dist is not None:
             raise ValueError("Mapper: camera must be undistorted (dist=None); undistort the images first")
@@ -620,8 +617,7 @@ class Mapper:
         imgs = self._images_f(ids)
         logs = []
         for _ in range(iters):
-            if self._should_stop is not None and self._should_stop():
-                raise MappingCancelled(f"{kind} update stopped after {len(logs)} of {iters} iterations")
+            check_stop(self._should_stop, f"{kind} update (after {len(logs)} of {iters} iterations)")
             logs.append(self._step(ids, imgs, mode, n_coarse, n_fine, sw_window))
         st = WindowStats(
             index=len(self._stats), kind=kind, seconds=time.perf_counter() - t0, iterations=iters,

@@ -121,6 +121,36 @@ def test_opacity_grid_and_mesh_culled_to_views():
     assert len(f2) > 0 and v2[:, 2].max() < 2.05
 
 
+def test_exports_stop_between_views_when_asked():
+    """``should_stop`` is asked once before each view: the export stops after as many views as
+    it allowed (counted by the renders made), and runs to the same result when it never fires."""
+    from fmapping.cancel import Cancelled
+
+    field = SlabField([(2.0, 0.1, (-3, 3), (-3, 3), (0.5, 0.5, 0.5))])
+    poses = [look_forward(x) for x in (-0.4, 0.0, 0.4, 0.8)]
+    renders = []
+
+    def render(c2w, cam):
+        renders.append(1)
+        d = np.full((cam.height, cam.width), 1.9)
+        return {"depth": d, "acc": np.ones_like(d)}
+
+    asked = []
+    with pytest.raises(Cancelled, match="mesh export"):
+        export_mesh(field, AABB, 41, poses, CAM, render=render, should_stop=lambda: asked.append(1) or len(asked) > 2)
+    assert len(renders) == 2
+    v, f, _ = export_mesh(field, AABB, 41, poses, CAM, render=render, should_stop=lambda: False)
+    v0, f0, _ = export_mesh(field, AABB, 41, poses, CAM, render=render)
+    np.testing.assert_array_equal(f, f0)
+    asked.clear()
+    with pytest.raises(Cancelled, match="point cloud export"):
+        export_point_cloud(field, poses, CAM, stride=4, should_stop=lambda: asked.append(1) or len(asked) > 3)
+    assert len(asked) == 4
+    p, _ = export_point_cloud(field, poses, CAM, stride=4, should_stop=lambda: False)
+    p0, _ = export_point_cloud(field, poses, CAM, stride=4)
+    np.testing.assert_array_equal(p, p0)
+
+
 # ----------------------------------------------------------------- fast export path vs the reference renderers
 def _structured_cp_field(resolution: int = 32):
     """A CP field with a dense wall at z ~ 2 and a small cube at (-0.45, 0, 0.6), random low-density noise elsewhere."""

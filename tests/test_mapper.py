@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from fmapping.field import FieldConfig
-from fmapping.mapper import Mapper, MapperConfig, MappingCancelled, aabb_from_poses
+from fmapping.cancel import Cancelled
+from fmapping.mapper import Mapper, MapperConfig, aabb_from_poses
 from fmapping.metrics import psnr, recon_metrics
 from fmapping.synthetic import camera_for_size, gt_cloud, make_scene, make_trajectory, render_view, visible_mask
 
@@ -196,7 +197,7 @@ def test_should_stop_cancels_between_iterations():
     m = Mapper(cfg, cam, aabb=room_aabb(scene), should_stop=lambda: asked.append(1) or len(asked) > 7)
     feed(m, views, c2w, 0, 3)
     assert not asked  # no update yet, nothing asked
-    with pytest.raises(MappingCancelled, match="after 7 of 50 iterations"):
+    with pytest.raises(Cancelled, match=r"init update \(after 7 of 50 iterations\) stopped"):
         m.add_frame(views[3][0], c2w[3])
     assert m.stats()["iterations"] == 7 and not m.initialized
     calls = []

@@ -205,6 +205,37 @@ def test_mapper_core_gt_snapshots_rebuild_the_field_and_bad_input_changes_nothin
     assert (core.ack, core.version, len(core.frames), len(core.poses)) == before[1:5]
 
 
+def test_mapper_core_stop_request_cancels_the_final_export_not_the_quick_one(dataset, tmp_path):
+    """A stop request that comes during the final export (after the closing optimisation) stops it
+    between views; the quick write the shell makes on a stop request runs although it stands."""
+    from fmapping.cancel import Cancelled
+    from fmapping.trajectory import read_tum_trajectory
+    from services.mapper import MapperCore, MapperServiceOptions
+
+    stop = []
+    core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", out=str(tmp_path), points_interval=1e9,
+                                                        checkpoint_every=0), should_stop=lambda: bool(stop))
+    feed(core, dataset, range(8))
+    stop.append("SIGTERM")  # while idle, no live snapshot yet: the quick write renders a few views
+    assert core.latest_points is None and set(core.write_outputs(final=False, quick=True)) == {"traj", "map"}
+    (tmp_path / "map.ply").unlink()
+    stop.clear()
+    closing = core.mapper.finish
+
+    def closing_then_signal():
+        st = closing()
+        stop.append("SIGTERM")
+        return st
+
+    core.mapper.finish = closing_then_signal
+    with pytest.raises(Cancelled, match="point cloud export"):
+        core.finish()
+    assert not (tmp_path / "map.ply").exists() and not (tmp_path / "mesh.ply").exists()
+    files = core.write_outputs(final=False, quick=True)  # what the shell does next
+    assert set(files) == {"traj", "map"} and (tmp_path / "map.ply").stat().st_size > 0
+    assert len(read_tum_trajectory(tmp_path / "traj.txt")[0]) == 8
+
+
 def test_mapper_core_external_source_waits_for_its_poses(dataset):
     from services.mapper import MapperCore, MapperServiceOptions
 

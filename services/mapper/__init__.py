@@ -100,7 +100,7 @@ class MapperCore(ServiceCore):
 
         super().__init__(counters, on_bad_input)
         self.clock = clock  # for the pose timeout (injectable in tests)
-        self.should_stop = should_stop  # asked between optimisation iterations (fmapping.mapper.MappingCancelled)
+        self.should_stop = should_stop  # asked between iterations and rendered views (fmapping.cancel)
         self._arrived: dict[int, float] = {}
         self.opts = (opts or MapperServiceOptions()).validate()
         self.cfg = cfg if cfg is not None else MapperConfig()
@@ -441,11 +441,12 @@ class MapperCore(ServiceCore):
                 # stopping on a signal: the newest live snapshot costs nothing (none yet: no map file)
                 pts, cols = (last.points, last.colors) if last is not None else (None, None)
             else:
-                pts, cols = map_points(self.mapper, self.opts.final_points, final=not quick, quick=quick)
+                pts, cols = map_points(self.mapper, self.opts.final_points, final=not quick, quick=quick,
+                                       should_stop=None if quick else self.should_stop)
             if pts is not None:
                 files["map"] = str(write_ply(out / "map.ply", pts, cols))
             if self.opts.write_mesh and not quick:
-                v, f, c = map_mesh(self.mapper, self.opts.mesh_resolution)
+                v, f, c = map_mesh(self.mapper, self.opts.mesh_resolution, should_stop=self.should_stop)
                 files["mesh"] = str(write_ply(out / "mesh.ply", v, c, faces=f))
         stats = {"final": final, "frames": len(seqs), "field_version": self.version, "files": files,
                  "counters": self.counters.snapshot(), "pose_source": self.opts.pose_source,
@@ -533,7 +534,7 @@ class MapperCore(ServiceCore):
 
 # ---------------------------------------------------------------------------- map export
 def map_points(mapper, max_points: int, final: bool = False, quick: bool = False,
-               seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+               seed: int = 0, should_stop=None) -> tuple[np.ndarray, np.ndarray]:
     """Coloured points of the map (:func:`fmapping.export.export_point_cloud`), at most ``max_points``.
 
     Live snapshots render up to 6 keyframes at <= 64 px width (cheap; ``quick``: 4 at 48 px,
@@ -562,11 +563,12 @@ def map_points(mapper, max_points: int, final: bool = False, quick: bool = False
         stride, voxel, check_views = 1, 0.03, views - 1
     pts, cols = export_point_cloud(mapper, {i: poses[i] for i in ids}, cam, images=images, stride=stride,
                                    voxel=voxel, near=cfg.near, far=cfg.far, n_samples=cfg.n_coarse,
-                                   n_importance=cfg.n_fine, check_views=max(1, check_views))
+                                   n_importance=cfg.n_fine, check_views=max(1, check_views),
+                                   should_stop=should_stop)
     return _bounded(np.asarray(pts, np.float32).reshape(-1, 3), np.asarray(cols).reshape(-1, 3), max_points, seed)
 
 
-def map_mesh(mapper, resolution: int = 96):
+def map_mesh(mapper, resolution: int = 96, should_stop=None):
     """(vertices, faces, colours) by marching cubes (:func:`fmapping.export.export_mesh`), culled to
     what the keyframes saw."""
     from fmapping.export import export_mesh
@@ -581,7 +583,7 @@ def map_mesh(mapper, resolution: int = 96):
         return {"rgb": r["rgb"], "acc": acc, "depth": np.where(acc > 1e-6, r["depth"] / np.maximum(acc, 1e-6), 0.0)}
 
     v, f, c = export_mesh(mapper.field, mapper.aabb, resolution, {i: poses[i] for i in ids}, mapper.camera,
-                          render=render, near=cfg.near, far=cfg.far)
+                          render=render, near=cfg.near, far=cfg.far, should_stop=should_stop)
     return np.asarray(v), np.asarray(f), np.asarray(c)
 
 

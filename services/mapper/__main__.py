@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from fmapping.mapper import MappingCancelled
+from fmapping.cancel import Cancelled
 from services.common import Service, add_common_args, run_main, service_parser, set_torch_threads, setup_logging
 from services.mapper import POSE_SOURCES, MapperCore, MapperServiceOptions, load_mapper_config
 
@@ -120,7 +120,7 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args) -> int:
                 else:
                     publish(core.handle(channel, data, key))
             publish(core.tick())
-        except MappingCancelled:
+        except Cancelled:
             interrupted = core.interrupted = True
             break
         except Exception as e:  # a library failure: report it, keep serving
