@@ -12,8 +12,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import signal
 import sys
+import threading
 from typing import Optional, Sequence
 
 from fmapping.runtime import retain_freed_memory
@@ -121,17 +124,44 @@ def cmd_info(a) -> int:
 def cmd_map(a) -> int:
     from fmapping.pipeline import run_map
 
-    stats = run_map(a)
-    _print_json(stats.get("summary", {}))
-    return 0
+    with stop_on_signal("fmapping map") as stop:
+        stats = run_map(a, should_stop=stop.is_set)
+    summary = stats.get("summary", {})
+    _print_json(summary)
+    return 130 if summary.get("stopped_at") is not None else 0
 
 
 def cmd_slam(a) -> int:
     from fmapping.slam import run_slam
 
-    stats = run_slam(a)
-    _print_json(stats.get("summary", {}))
-    return 0
+    with stop_on_signal("fmapping slam") as stop:
+        stats = run_slam(a, should_stop=stop.is_set)
+    summary = stats.get("summary", {})
+    _print_json(summary)
+    return 130 if summary.get("stopped_at") is not None else 0
+
+
+@contextlib.contextmanager
+def stop_on_signal(prog: str):
+    """Within: the first SIGINT / SIGTERM sets the yielded event (a long job ends at its next
+    frame and writes what it has); a second SIGINT raises KeyboardInterrupt as usual."""
+    stop = threading.Event()
+
+    def handler(signum, _frame):
+        stop.set()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        print(f"\n{prog}: {signal.Signals(signum).name}: stopping; writing what is done so far "
+              "(Ctrl-C again to abort)", file=sys.stderr)
+
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+    old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
 
 
 def cmd_eval(a) -> int:

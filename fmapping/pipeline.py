@@ -27,6 +27,7 @@ from typing import Optional
 
 import numpy as np
 
+from fmapping.cancel import Cancelled, StopFn
 from fmapping.config import load_config, to_dict
 from fmapping.mapper import Mapper, MapperConfig, aabb_from_depth, aabb_from_poses
 
@@ -203,8 +204,10 @@ def json_default(o):
 
 
 # ----------------------------------------------------------------------------- the mapping job
-def run_map(args) -> dict:
-    """Run the mapping job (see the module docstring); returns the stats dict with a ``summary``."""
+def run_map(args, should_stop: StopFn = None) -> dict:
+    """Run the mapping job (see the module docstring); returns the stats dict with a ``summary``.
+    ``should_stop()`` True ends it early: the map so far is exported without the closing stage
+    (``summary["stopped_at"]``: the first frame not given to the mapper)."""
     import torch
     from tqdm import tqdm
 
@@ -217,18 +220,34 @@ def run_map(args) -> dict:
     aabb = scene_aabb(ds, cfg, poses)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    mapper = Mapper(cfg, ds.camera, aabb=aabb)
-    used, skipped = [], 0
-    for i in tqdm(range(len(ds)), desc="mapping", unit="frame", disable=getattr(args, "quiet", False)):
-        if poses[i] is None:
-            skipped += 1
-            continue
-        f = ds[i]
-        mapper.add_frame(f.rgb, poses[i], f.timestamp, f.depth if cfg.use_depth else None)
-        used.append(i)
+    mapper = Mapper(cfg, ds.camera, aabb=aabb, should_stop=should_stop)
+    used, skipped, stopped_at = [], 0, None
+    with tqdm(range(len(ds)), desc="mapping", unit="frame", disable=getattr(args, "quiet", False)) as bar:
+        for i in bar:
+            if should_stop is not None and should_stop():
+                stopped_at = i
+                break
+            if poses[i] is None:
+                skipped += 1
+                continue
+            f = ds[i]
+            used.append(i)
+            try:
+                mapper.add_frame(f.rgb, poses[i], f.timestamp, f.depth if cfg.use_depth else None)
+            except Cancelled:  # inside an update: this frame was the last one given
+                stopped_at = i + 1
+                break
     if not used:
-        raise ValueError(f"no frame of {args.data} has a pose")
-    mapper.finish()
+        raise ValueError(f"no frame of {args.data} has a pose" if stopped_at is None else
+                         f"stopped on request before any frame of {args.data} was mapped")
+    if stopped_at is None:
+        mapper.finish()
+    elif not mapper.initialized:
+        log.warning("stopped before frame %d, before the mapper's init stage ended: no map to write", stopped_at)
+        return write_stats(out, {"dataset": ds.describe(), "frames_used": len(used), "stopped_at": stopped_at},
+                           {"out": str(out), "frames": len(used), "stopped_at": stopped_at, "points": 0})
+    else:
+        log.warning("stopped before frame %d of %d: exporting the map so far", stopped_at, len(ds))
     t_map = time.perf_counter() - t_start
 
     # ---- export
@@ -251,6 +270,7 @@ def run_map(args) -> dict:
         "poses": getattr(args, "poses", "gt"),
         "frames_used": len(used),
         "frames_without_pose": skipped,
+        "stopped_at": stopped_at,
         "aabb": mapper.aabb.cpu().tolist(),
         "mapper": mstats,
         "export": export,
@@ -262,6 +282,7 @@ def run_map(args) -> dict:
     summary = {
         "out": str(out),
         "frames": len(used),
+        "stopped_at": stopped_at,
         "parameters": mstats["parameters"],
         "window_seconds_min": mstats["window_seconds_min"],
         "window_seconds_median": mstats["window_seconds_median"],

@@ -65,6 +65,7 @@ from typing import Optional
 
 import numpy as np
 
+from fmapping.cancel import Cancelled, StopFn
 from fmapping.config import load_config, to_dict
 from fmapping.mapper import Mapper, MapperConfig
 from fmapping.pipeline import MESH_RESOLUTION, open_job_dataset, recon_stats, write_map_outputs, write_stats
@@ -205,8 +206,10 @@ class SlamRun:
     """State of one SLAM run over a dataset (see the module docstring)."""
 
     def __init__(self, ds, cfg: SlamConfig, poses: str = "photometric", out: Optional[Path] = None,
-                 progress: bool = True):
+                 progress: bool = True, should_stop: StopFn = None):
         self.ds = ds
+        self.should_stop = should_stop  # asked before every frame and mapper iteration (fmapping.cancel)
+        self.stopped_at: Optional[int] = None  # the first frame not processed, when a stop request ended the run
         self.cfg = cfg
         self.camera = ds.camera
         self.poses_mode = poses
@@ -260,7 +263,7 @@ class SlamRun:
 
     def _new_mapper(self, init_frames: int) -> Mapper:
         mcfg = dataclasses.replace(self.cfg.mapper, init_frames=init_frames)
-        return Mapper(mcfg, self.camera, aabb=self._aabb())
+        return Mapper(mcfg, self.camera, aabb=self._aabb(), should_stop=self.should_stop)
 
     # -------------------------------------------------------------- external pose sources
     def _external_poses(self) -> list:
@@ -289,11 +292,42 @@ class SlamRun:
         return poses_from_file(ensure_path(self.poses_mode), np.asarray(ds.timestamps))
 
     def _iter(self, it, desc: str):
-        if not self.progress:
-            return it
-        from tqdm import tqdm
+        """The frame indices ``it`` (with a progress bar), up to the first one at which a stop was requested."""
+        bar = None
+        if self.progress:
+            from tqdm import tqdm
 
-        return tqdm(it, desc=desc, unit="frame")
+            bar = it = tqdm(it, desc=desc, unit="frame")
+        try:
+            for i in it:
+                if self.should_stop is not None and self.should_stop():
+                    self.stopped_at = int(i)
+                    return
+                yield i
+        finally:
+            if bar is not None:
+                bar.close()
+
+    @property
+    def stop_requested(self) -> bool:
+        return self.should_stop is not None and bool(self.should_stop())
+
+    def run(self) -> None:
+        """Track and map every frame (with the mapper's closing stage), or up to a stop request:
+        then without the closing stage, and ``stopped_at`` says where it ended."""
+        try:
+            if self.poses_mode == "photometric":
+                self.run_photometric()
+            else:
+                self.run_external()
+        except Cancelled:  # inside a mapper update: its frame is the last one with a pose
+            pass
+        if self.stop_requested:
+            if self.stopped_at is None:
+                self.stopped_at = max(self.est, default=-1) + 1
+            self.notes.append(f"stopped on request before frame {self.stopped_at}; no closing optimisation")
+            return
+        self.finish()
 
     def run_external(self) -> None:
         poses = self._external_poses()
@@ -618,8 +652,9 @@ class SlamRun:
                 self.est[i] = refined[fid]
 
     def output_poses(self) -> np.ndarray:
+        """Every frame's pose up to where the run ended (a frame without one keeps the previous pose)."""
         c = self.c2w0[:3, 3]
-        n = len(self.ds)
+        n = len(self.ds) if self.stopped_at is None else self.stopped_at
         out = []
         last = None
         for i in range(n):
@@ -644,8 +679,10 @@ def _export(run: SlamRun, out: Path) -> dict:
                              center=run.c2w0[:3, 3], scale=run.scale)
 
 
-def run_slam(args) -> dict:
-    """Run the SLAM loop (see the module docstring); returns the stats dict with a ``summary``."""
+def run_slam(args, should_stop: StopFn = None) -> dict:
+    """Run the SLAM loop (see the module docstring); returns the stats dict with a ``summary``.
+    ``should_stop()`` True ends it early: the frames so far are written, without the closing
+    optimisation (``summary["stopped_at"]``: the first frame not processed)."""
     import torch
 
     from fmapping.trajectory import write_tum_trajectory
@@ -656,16 +693,16 @@ def run_slam(args) -> dict:
     poses_mode = getattr(args, "poses", "photometric") or "photometric"
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    run = SlamRun(ds, cfg, poses_mode, out, progress=not getattr(args, "quiet", False))
-    if poses_mode == "photometric":
-        run.run_photometric()
-    else:
-        run.run_external()
-    run.finish()
+    run = SlamRun(ds, cfg, poses_mode, out, progress=not getattr(args, "quiet", False), should_stop=should_stop)
+    run.run()
     t_loop = time.perf_counter() - t_start
     est = run.output_poses()
-    write_tum_trajectory(out / "traj.txt", np.asarray(ds.timestamps, np.float64), est)
-    export = _export(run, out) if cfg.export and run.mapper is not None else None
+    write_tum_trajectory(out / "traj.txt", np.asarray(ds.timestamps, np.float64)[:len(est)], est)
+    mapped = run.mapper is not None and (run.stopped_at is None or run.mapper.initialized)
+    if run.stopped_at is not None:
+        log.warning("stopped before frame %d of %d: wrote %s%s", run.stopped_at, len(ds), out / "traj.txt",
+                    "; exporting the map so far" if cfg.export and mapped else "")
+    export = _export(run, out) if cfg.export and mapped else None
 
     ms = np.array([run.track_ms[i] for i in sorted(run.track_ms)], np.float64)
     track_ms_after_init = np.array([run.track_info[i]["ms"] for i in sorted(run.track_info)], np.float64)
@@ -694,15 +731,17 @@ def run_slam(args) -> dict:
         "seconds": {"loop": t_loop, "total": time.perf_counter() - t_start},
         "torch_threads": torch.get_num_threads(),
     }
-    ate_res = _ate_block(est, list(ds.gt_poses)) if run.has_gt else None
+    gt = list(ds.gt_poses)[:len(est)]  # the frames the run got to
+    ate_res = _ate_block(est, gt) if run.has_gt else None
     stats["ate"] = ate_res
     if export is not None and export["points"] > 0:
-        stats.update(recon_stats(ds, out, sim3=_sim3_to_gt(est, list(ds.gt_poses))))
+        stats.update(recon_stats(ds, out, sim3=_sim3_to_gt(est, gt)))
     summary = {
         "out": str(out),
         "poses": poses_mode,
         "frames": len(ds),
         "frames_mapped": len(run.fid_of),
+        "stopped_at": run.stopped_at,
         "tracking_loss_events": len(run.loss_events),
         "loop_closures": len(run.frontend.loops) if run.frontend is not None else 0,
         "relocalised_frames": sum(bool(v.get("relocalised")) for v in run.track_info.values()),
