@@ -237,9 +237,8 @@ def run_map(args, should_stop: StopFn = None) -> dict:
             except Cancelled:  # inside an update: this frame was the last one given
                 stopped_at = i + 1
                 break
-    if not used:
-        raise ValueError(f"no frame of {args.data} has a pose" if stopped_at is None else
-                         f"stopped on request before any frame of {args.data} was mapped")
+    if not used and stopped_at is None:
+        raise ValueError(f"no frame of {args.data} has a pose")
     if stopped_at is None:
         mapper.finish()
     elif not mapper.initialized:
