@@ -63,3 +63,22 @@ def test_limit_blas_threads_sets_numpys_pool_and_can_restore_it():
     finally:
         limit_blas_threads(max(before))
     assert blas_threads() == [max(before)] * len(before)
+
+
+def test_service_torch_threads_auto_and_explicit():
+    """``--threads 0`` takes the service's automatic count (at least 1), a positive value is kept;
+    the CPUs counted are this process's affinity set."""
+    import os
+
+    import torch
+
+    from services.common import available_cpus, set_torch_threads
+
+    assert available_cpus() == len(os.sched_getaffinity(0))
+    before = torch.get_num_threads()
+    try:
+        assert set_torch_threads(0, auto=available_cpus() // 2) == max(1, available_cpus() // 2) == torch.get_num_threads()
+        assert set_torch_threads(0, auto=0) == 1 == torch.get_num_threads()
+        assert set_torch_threads(3, auto=1) == 3 == torch.get_num_threads()
+    finally:
+        torch.set_num_threads(before)

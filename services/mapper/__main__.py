@@ -13,10 +13,12 @@ current map (and a checkpoint) before exiting.
 from __future__ import annotations
 
 import argparse
+import logging
 import time
 
 from fmapping.cancel import Cancelled
-from services.common import Service, add_common_args, run_main, service_parser, set_torch_threads, setup_logging
+from services.common import (Service, add_common_args, available_cpus, run_main, service_parser, set_torch_threads,
+                             setup_logging)
 from services.mapper import POSE_SOURCES, MapperCore, MapperServiceOptions, load_mapper_config
 
 
@@ -44,7 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-mesh", action="store_true")
     p.add_argument("--mesh-resolution", type=int, default=96, help="marching-cubes grid per axis")
     p.add_argument("--device", default=None, help="torch device (default: the config's, 'auto')")
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch default)")
+    p.add_argument("--threads", type=int, default=0,
+                   help="torch threads (0 = auto: half the CPUs this process may use, at least 1)")
     p.add_argument("--linger", action="store_true", help="after the end, keep answering map/latest until SIGTERM")
     return add_common_args(p)
 
@@ -52,7 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None, session=None, keys=None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.log_level, "mapper")
-    set_torch_threads(args.threads)
+    threads = set_torch_threads(args.threads, auto=available_cpus() // 2)
+    logging.getLogger("fmapping.mapper").info("torch threads: %d", threads)
     overrides = {"field": {"kind": args.field}} if args.field else None
     cfg = load_mapper_config(args.config, overrides)
     if args.device:

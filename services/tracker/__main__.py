@@ -8,6 +8,7 @@ joiners and restarts continue from the current map).
 from __future__ import annotations
 
 import argparse
+import logging
 
 from fmapping.runtime import limit_blas_threads, retain_freed_memory
 from services.common import (Service, add_common_args, query_latest, run_main, service_parser, set_torch_threads,
@@ -26,14 +27,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--anchor", default="gt",
                    help="pose source fixing world frame and scale of the mono bootstrap ('' for none)")
     p.add_argument("--query-timeout", type=float, default=2.0, help="seconds to wait for map/latest at start")
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch default)")
+    p.add_argument("--threads", type=int, default=0, help="torch threads (0 = auto: 1; its tensors are small)")
     return add_common_args(p)
 
 
 def main(argv=None, session=None, keys=None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.log_level, "tracker")
-    set_torch_threads(args.threads)
+    threads = set_torch_threads(args.threads, auto=1)
+    logging.getLogger("fmapping.tracker").info("torch threads: %d", threads)
     retain_freed_memory()  # the numpy bundle adjustment: reuse freed temporaries, and one BLAS thread next
     limit_blas_threads(1)  # to the other services on the same cores (fmapping.runtime)
     cfg = load_tracker_config(args.config)
