@@ -300,7 +300,7 @@ class SlamRun:
             bar = it = tqdm(it, desc=desc, unit="frame")
         try:
             for i in it:
-                if self.should_stop is not None and self.should_stop():
+                if self.stop_requested:
                     self.stopped_at = int(i)
                     return
                 yield i

@@ -431,19 +431,25 @@ class MonoFrontend:
     def rescale(self, s: float) -> None:
         """Scale the front end's world by ``s`` about the first camera centre: keyframe poses,
         landmarks, the poses of the frames relative to their keyframe, the tracker's references."""
-        c0 = self._c2w0[:3, 3]
-        self._kf_pose = {k: scale_about(p, c0, s) for k, p in self._kf_pose.items()}
-        self._lm = [c0 + s * (np.asarray(p) - c0) for p in self._lm]
-        self._scale_relative(s)
-        self.tracker.rescale(c0, s)
+        self._scale_part(self._c2w0[:3, 3], s)
 
-    def _scale_relative(self, s: float, kfs: Optional[set] = None) -> None:
-        """Scale the translations of the frames stored relative to keyframes ``kfs`` (default all)."""
+    def _scale_part(self, c0: np.ndarray, s: float, kfs: Optional[set] = None) -> None:
+        """Scale by ``s`` about ``c0`` what belongs to keyframes ``kfs`` (default: everything): their
+        poses, the landmarks first seen by them, the frames stored relative to them (translations)
+        and the tracker's references of them (with everything, its motion model too)."""
+        first = None if kfs is None else self._first_keyframes()
+        for k in list(self._kf_pose):
+            if kfs is None or k in kfs:
+                self._kf_pose[k] = scale_about(self._kf_pose[k], c0, s)
+        for lid, p in enumerate(self._lm):
+            if kfs is None or first.get(lid) in kfs:
+                self._lm[lid] = c0 + s * (np.asarray(p) - c0)
         for i, (k, rel) in self._rel.items():
             if kfs is None or k in kfs:
                 rel = rel.copy()
                 rel[:3, 3] *= s
                 self._rel[i] = (k, rel)
+        self.tracker.rescale(c0, s, frames=kfs)
 
     # ================================================================== internals
     def _klt(self, gray: np.ndarray) -> None:
@@ -680,18 +686,8 @@ class MonoFrontend:
         return first
 
     def _scale_keyframes(self, kfs: list, about: int, s: float) -> None:
-        """Scale what belongs to keyframes ``kfs`` by ``s`` about keyframe ``about``'s centre: their
-        poses, the landmarks first seen by them, the frames stored relative to them, and the
-        tracker's references of them (as :meth:`rescale` does for the whole world)."""
-        c0 = self._kf_pose[about][:3, 3].copy()
-        moved = set(kfs)
-        for k in kfs:
-            self._kf_pose[k] = scale_about(self._kf_pose[k], c0, s)
-        for lid, k in self._first_keyframes().items():
-            if k in moved:
-                self._lm[lid] = c0 + s * (self._lm[lid] - c0)
-        self._scale_relative(s, moved)
-        self.tracker.rescale(c0, s, frames=moved)
+        """Scale what belongs to keyframes ``kfs`` by ``s`` about keyframe ``about``'s centre (:meth:`_scale_part`)."""
+        self._scale_part(self._kf_pose[about][:3, 3].copy(), s, set(kfs))
 
     def _run_ba(self, fixed_all_but_points: bool = False, window: Optional[list] = None,
                 max_nfev: Optional[int] = None) -> None:

@@ -62,7 +62,8 @@ def optimize_pose_graph(poses: Sequence[np.ndarray], edges: Sequence[tuple[int, 
         return edge_residuals(rot, trans, ei, ej, rel, unit).reshape(-1)
 
     x0 = np.zeros(6 * len(free))
-    cost_before = 0.5 * float(fun(x0) @ fun(x0))
+    res0 = fun(x0)
+    cost_before = 0.5 * float(res0 @ res0)
     if not free:
         return poses, {"cost_before": cost_before, "cost_after": cost_before, "nfev": 0}
     sparsity = lil_matrix((6 * len(edges), 6 * len(free)), dtype=np.int8)
