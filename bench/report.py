@@ -183,11 +183,40 @@ def tracking_section() -> str:
                        f"deg from the first GT pose and {fmt(off['xyz']['floor_rot_fit_mean_deg'])} deg best-fit "
                        f"(x and z only: {fmt(off['xz']['floor_rot_first_mean_deg'])} / "
                        f"{fmt(off['xz']['floor_rot_fit_mean_deg'])} deg).")
+        opt = block.get("images_optimum") if isinstance(block, dict) else None
+        if opt and opt.get("starts"):
+            parts = []
+            for start, r in opt["starts"].items():
+                o = r["optimum"]
+                txt = (f"from {start}: Sim3 {fmt(o['sim3']['rmse_m'] * 100)} cm, rotation "
+                       f"{fmt(o['none']['rot_first_mean_deg'])} deg from the first GT pose / "
+                       f"{fmt(o['none']['rot_fit_mean_deg'])} deg best-fit, {fmt(r['median_px'])} px median")
+                if "apart_from_first" in r:
+                    a = r["apart_from_first"]
+                    txt += (f", {fmt(a['sim3_rmse_m'] * 100)} cm / {fmt(a['rot_first_mean_deg'])} deg from the "
+                            "first start's optimum")
+                parts.append(txt)
+            out.append(f"The trajectory the images determine, {data_name} (global bundle adjustment of all "
+                       f"{block.get('frames', '?')} frames on {opt['tracks']} KLT tracks, reprojection error only): "
+                       + "; ".join(parts) + ".")
+            rs = opt.get("rolling_shutter") or {}
+            if rs:
+                start = next(iter(opt["starts"]))
+                cells = [f"0 (global shutter): cost {fmt(opt['starts'][start]['cost'], 0)}"]
+                for readout, r in rs.items():
+                    o = r["optimum"]
+                    cells.append(f"{readout}: cost {fmt(r['cost'], 0)}, Sim3 {fmt(o['sim3']['rmse_m'] * 100)} cm, "
+                                 f"rotation {fmt(o['none']['rot_first_mean_deg'])} / {fmt(o['none']['rot_fit_mean_deg'])} deg")
+                out.append(f"The same from {start} with the tracks unrolled for a rolling shutter, by readout (fraction "
+                           "of the frame interval): " + "; ".join(cells) + f". The images prefer {opt['best_readout']}.")
+    spreads = (("mono_spread", "Mono"), ("mono_rolling_shutter_spread", "Mono with the rolling shutter"))
     for data_name, block in d.items():
-        sp = block.get("mono_spread") if isinstance(block, dict) else None
-        if sp and "se3_cm" in sp:
+        for key, what in spreads:
+            sp = block.get(key) if isinstance(block, dict) else None
+            if not (sp and "se3_cm" in sp):
+                continue
             rng = lambda k, u: f"{fmt(sp[k]['median'])} {u} ({fmt(sp[k]['min'])}-{fmt(sp[k]['max'])})"  # noqa: E731
-            out.append(f"Mono, {data_name}, over {sp['runs']} runs (the frames as they are and with "
+            out.append(f"{what}, {data_name}, over {sp['runs']} runs (the frames as they are and with "
                        f"{sp['perturbation']}), median (min-max): SE3 {rng('se3_cm', 'cm')}, Sim3 {rng('sim3_cm', 'cm')}, "
                        f"rotation from the first GT pose {rng('rot_first_deg', 'deg')}, best-fit {rng('rot_fit_deg', 'deg')}.")
     al = d.get("ba_allocator")

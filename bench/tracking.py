@@ -28,7 +28,18 @@ and rotation error can tell apart (:mod:`fmapping.tracking.consistency`).
 ``gt_camera_offset`` (frames with depth only): the constant rotation of the GT's camera frame
 (a hand-eye or principal-point error) that makes the GT explain tracks 10 and 15 frames long
 best, its spread over two halves of the pairs, and the rotation errors ``GT @ X`` itself has
-against the GT: the floor for any tracker that agrees with the images.
+against the GT (what a tracker agreeing with the images as well as ``GT @ X`` would score).
+
+``images_optimum`` (frames with depth only, the depth placing the starting points): the
+trajectory that explains multi-frame KLT tracks best, a bundle adjustment of every frame on
+the reprojection error alone, started from the GT and from the mono estimate. Where both
+starts reach the same optimum, that optimum is what the images determine (with these
+intrinsics): its errors against the GT bound what an RGB-only tracker can reach except by chance.
+The same from the GT with the tracks unrolled for a rolling shutter of several readout times:
+the readout whose optimum costs least is the one the images prefer (no GT in that choice).
+
+``mono_rolling_shutter`` (with ``images_optimum``): the mono front end with that readout
+(``MonoConfig.rolling_shutter``), once and over the perturbed copies (``..._spread``).
 
 ``mono_spread``: the mono front end again on five copies of the frames with one grey level
 added to or taken from 5 % of the pixels; min / median / max of its ATE and rotation errors.
@@ -171,6 +182,53 @@ def gt_camera_offset(frames, camera, steps=(10, 15)) -> dict:
     return out
 
 
+def images_optimum(frames, camera, starts: dict, readouts=(0.3, 0.6, 0.85, 1.0)) -> dict:
+    """The trajectory that explains the images best (:func:`fmapping.tracking.consistency.best_explaining_poses`:
+    multi-frame KLT tracks, bundle adjustment of every frame on the reprojection error alone), started
+    from each of ``starts`` (name -> (N, 4, 4)): its ATE and rotation errors against the GT, and how
+    far the optima from the different starts lie from the first one's (Sim3 RMSE, rotation). Optima
+    that coincide are what the images determine; a target that they miss is out of reach of any
+    RGB-only tracker with this camera model, except by chance.
+
+    ``rolling_shutter``: the same from the first start with the tracks unrolled for a rolling
+    shutter (:mod:`fmapping.tracking.rolling_shutter`) of each readout in ``readouts`` (fractions
+    of the frame interval; rotation steps from the global-shutter optimum). The readout with the
+    lowest cost is the one the images prefer (``best_readout``; no GT involved)."""
+    from fmapping.metrics import ate
+    from fmapping.tracking.consistency import best_explaining_poses, frame_tracks
+    from fmapping.tracking.rolling_shutter import rotation_steps, unroll_tracks
+
+    t0 = time.perf_counter()
+    tracks = frame_tracks([f.rgb for f in frames])
+    depths = [f.depth for f in frames]
+    out: dict = {"tracks_seconds": time.perf_counter() - t0, "starts": {}, "rolling_shutter": {}}
+    gt = [f.c2w for f in frames]
+    first = None
+    for name, start in starts.items():
+        t0 = time.perf_counter()
+        poses, info = best_explaining_poses(camera, tracks, start, depths)
+        r = {**info, "seconds": time.perf_counter() - t0, "start": _ate(list(start), gt), "optimum": _ate(list(poses), gt)}
+        if first is None:
+            first = poses
+        else:
+            apart = ate(poses, first, "sim3")
+            r["apart_from_first"] = {"sim3_rmse_m": apart["rmse_m"], "rot_first_mean_deg": apart["rot_first_mean_deg"],
+                                     "rot_fit_mean_deg": apart["rot_fit_mean_deg"]}
+        out["starts"][name] = r
+    name, start = next(iter(starts.items()))
+    out["tracks"] = out["starts"][name]["tracks"]
+    costs = {0.0: out["starts"][name]["cost"]}
+    steps = rotation_steps(first)
+    for readout in readouts:
+        t0 = time.perf_counter()
+        poses, info = best_explaining_poses(camera, unroll_tracks(camera, tracks, steps, readout), start, depths)
+        out["rolling_shutter"][str(readout)] = {**info, "seconds": time.perf_counter() - t0,
+                                                "optimum": _ate(list(poses), gt)}
+        costs[readout] = info["cost"]
+    out["best_readout"] = float(min(costs, key=costs.get))
+    return out
+
+
 def run_direct(frames, camera, depth_of, poses_out: "dict | None" = None) -> dict:
     """``depth_of(i, c2w)`` -> depth image or uv callable for a new keyframe at frame i."""
     from fmapping.tracking.frontend import DirectTracker
@@ -202,7 +260,7 @@ def run_direct(frames, camera, depth_of, poses_out: "dict | None" = None) -> dic
     return out
 
 
-def run_mono(frames, camera, anchor_position: bool = False, cfg=None) -> dict:
+def run_mono(frames, camera, anchor_position: bool = False, cfg=None, poses_out: "dict | None" = None) -> dict:
     """RGB-only front end; the bootstrap's scale comes from the GT baseline length |t_k - t_0|
     or, with ``anchor_position``, from the GT camera centres of frames 0 and k (baseline vector),
     and is taken again from the GT baseline to frame 14 (``MonoConfig.late_anchor_frames``)."""
@@ -229,6 +287,8 @@ def run_mono(frames, camera, anchor_position: bool = False, cfg=None) -> dict:
         lost += r.lost
     est.update(fe.poses())
     ids = sorted(est)
+    if poses_out is not None and ids == list(range(len(frames))):
+        poses_out["mono"] = np.stack([est[k] for k in ids])
     return {**_timing(ms), "lost": int(lost), "bootstrap": fe.init_info, "bootstrap_ms_total": boot_ms,
             "ba_ms_median": float(np.median([b["ms"] for b in fe.ba_stats])) if fe.ba_stats else None,
             "reinit": list(fe.reinits),
@@ -253,10 +313,12 @@ def perturbed(frames, seed: int, fraction: float = 0.05):
     return out
 
 
-def mono_spread(frames, camera, seeds=(1, 2, 3, 4, 5)) -> dict:
+def mono_spread(frames, camera, seeds=(1, 2, 3, 4, 5), cfg=None) -> dict:
     """The mono front end on the frames as they are and on :func:`perturbed` copies: min,
-    median and max of its ATE and rotation errors (one run's figure is one draw of these)."""
-    runs = [run_mono(frames, camera)] + [run_mono(perturbed(frames, s), camera) for s in seeds]
+    median and max of its ATE and rotation errors (one run's figure is one draw of these).
+    ``cfg``: a callable giving a fresh :class:`MonoConfig` per run (default: the defaults)."""
+    make = cfg or (lambda: None)
+    runs = [run_mono(frames, camera, cfg=make())] + [run_mono(perturbed(frames, s), camera, cfg=make()) for s in seeds]
     keys = {"se3_cm": ("se3", "rmse_m", 100), "sim3_cm": ("sim3", "rmse_m", 100),
             "rot_first_deg": ("none", "rot_first_mean_deg", 1), "rot_fit_deg": ("none", "rot_fit_mean_deg", 1)}
     out: dict = {"runs": len(runs), "perturbation": "+-1 grey level on 5 % of the pixels", "seeds": list(seeds)}
@@ -336,7 +398,8 @@ def bench_dataset(name: str, frames, camera, args) -> dict:
     est: dict = {}
     res["direct_gt_depth"] = run_direct(frames, camera, lambda i, c2w: frames[i].depth, est)
     print(f"[{name}] mono (RGB only) ...", flush=True)
-    res["mono"] = run_mono(frames, camera)
+    mono: dict = {}
+    res["mono"] = run_mono(frames, camera, poses_out=mono)
     print(f"[{name}] mono, scale from the bootstrap alone ...", flush=True)
     res["mono_no_late_anchor"] = run_mono(frames, camera, cfg=MonoConfig(late_anchor_frames=0))
     print(f"[{name}] mono on perturbed copies of the frames ...", flush=True)
@@ -351,6 +414,15 @@ def bench_dataset(name: str, frames, camera, args) -> dict:
                                                    {"groundtruth": np.stack([f.c2w for f in frames]), **est})
         print(f"[{name}] camera-frame rotation of the GT against the images ...", flush=True)
         res["gt_camera_offset"] = gt_camera_offset(frames, camera)
+        print(f"[{name}] the trajectory the images determine (global BA from GT and from mono) ...", flush=True)
+        res["images_optimum"] = opt = images_optimum(frames, camera, {"groundtruth": np.stack([f.c2w for f in frames]),
+                                                                      **mono})
+        readout = opt["best_readout"]
+        print(f"[{name}] mono with a rolling shutter of readout {readout} (the images' choice) ...", flush=True)
+        cfg = lambda: MonoConfig(rolling_shutter=readout)  # noqa: E731
+        res["mono_rolling_shutter"] = {**run_mono(frames, camera, cfg=cfg()), "readout": readout}
+        if readout:  # with 0 it is the mono spread again
+            res["mono_rolling_shutter_spread"] = mono_spread(frames, camera, cfg=cfg)
     if not args.no_map:
         print(f"[{name}] building a map from GT poses + depth ...", flush=True)
         m, secs = build_map(frames[: args.map_frames], camera, args.map_final_iters)

@@ -13,6 +13,13 @@ the camera frame changes every relative rotation ``Q`` into ``X^T Q X``; it is o
 only through motions that do not share its axis, and more so over long frame gaps, so fit
 it on pairs many frames apart. ``X`` about the axis of a single-axis motion stays
 unobserved (it starts and stays near zero).
+
+:func:`best_explaining_poses` asks the question without a tracker in the way: the
+trajectory that explains multi-frame KLT tracks (:func:`frame_tracks`) best, a bundle
+adjustment of every frame and every track started from given poses (the ground truth, say).
+Its result is what the images determine, up to a similarity; when it lands at the same
+poses from different starts, no tracker can do better from the images. A target that even
+this optimum misses cannot be met from the images alone, except by chance.
 """
 from __future__ import annotations
 
@@ -22,6 +29,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from fmapping.camera import PinholeCamera
+from fmapping.tracking.ba import bundle_adjust
 from fmapping.tracking.features import KltConfig, detect_corners, klt_track, to_u8
 
 
@@ -114,3 +122,90 @@ def fit_camera_rotation(pairs: Sequence[TrackPair], c2w: np.ndarray, camera: Pin
 
     sol = least_squares(residual, np.zeros(len(idx)), loss="huber", f_scale=huber_px)
     return rot(sol.x)
+
+
+@dataclass(frozen=True)
+class FrameTracks:
+    """KLT tracks over many frames, one row per observation."""
+    frame: np.ndarray  # (O,) frame index
+    track: np.ndarray  # (O,) track index, 0 .. tracks - 1
+    uv: np.ndarray  # (O, 2) pixel
+
+    @property
+    def tracks(self) -> int:
+        return int(self.track.max()) + 1 if len(self.track) else 0
+
+
+def frame_tracks(rgbs: Sequence[np.ndarray], klt: Optional[KltConfig] = None, start_every: int = 3,
+                 max_length: int = 30, min_length: int = 3) -> FrameTracks:
+    """Corners of every ``start_every``-th frame followed frame by frame with KLT (forward-backward
+    check) for up to ``max_length`` frames; tracks seen in fewer than ``min_length`` frames dropped."""
+    if start_every < 1 or max_length < 2 or min_length < 2:
+        raise ValueError(f"start_every >= 1, max_length >= 2 and min_length >= 2 needed, got "
+                         f"{start_every}, {max_length}, {min_length}")
+    klt = klt or KltConfig()
+    grey = [to_u8(x) for x in rgbs]
+    frame, track, uvs = [], [], []
+    next_id = 0
+    for a in range(0, len(grey) - 1, start_every):
+        uv = detect_corners(grey[a], klt).astype(np.float64)
+        ids = np.arange(next_id, next_id + len(uv))
+        next_id += len(uv)
+        frame.append(np.full(len(uv), a))
+        track.append(ids)
+        uvs.append(uv)
+        for b in range(a + 1, min(len(grey), a + max_length)):
+            if not len(uv):
+                break
+            uv, ok = klt_track(grey[b - 1], grey[b], uv, klt)
+            uv, ids = np.asarray(uv[ok], np.float64), ids[ok]
+            frame.append(np.full(len(uv), b))
+            track.append(ids)
+            uvs.append(uv)
+    if not next_id:
+        return FrameTracks(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
+    frame, track, uv = np.concatenate(frame), np.concatenate(track), np.concatenate(uvs)
+    long = np.bincount(track, minlength=next_id)[track] >= min_length
+    _, track = np.unique(track[long], return_inverse=True)
+    return FrameTracks(frame[long].astype(np.int64), track.astype(np.int64), uv[long])
+
+
+def best_explaining_poses(camera: PinholeCamera, tracks: FrameTracks, c2w_start: np.ndarray,
+                          depths: Sequence[np.ndarray], huber_px: float = 2.0, max_nfev: int = 200,
+                          fixed: Sequence[int] = (0,)) -> tuple[np.ndarray, dict]:
+    """Bundle adjustment of every frame (frame 0 fixed) and every track on the reprojection error,
+    started from ``c2w_start`` (N, 4, 4), the frames ``fixed`` held. The depth only places the points to start from: each
+    track's at its first observation with a reading in ``depths`` (N x (H, W) metres, 0 = none;
+    tracks never seen with depth are dropped). The result is what the images determine, up to
+    its scale (frame 0 alone holds the other six degrees of freedom): compare it after a Sim3
+    alignment or by its rotations. Returns the poses (N, 4, 4) and
+    ``{"tracks", "observations", "cost", "cost_start", "median_px", "nfev"}``."""
+    c2w_start = np.asarray(c2w_start, np.float64)
+    n = len(c2w_start)
+    if len(depths) != n or (len(tracks.frame) and tracks.frame.max() >= n):
+        raise ValueError(f"{n} start poses, {len(depths)} depth images and tracks up to frame "
+                         f"{int(tracks.frame.max()) if len(tracks.frame) else -1}: they must cover the same frames")
+    ui = tracks.uv[:, 0].round().astype(np.int64).clip(0, camera.width - 1)
+    vi = tracks.uv[:, 1].round().astype(np.int64).clip(0, camera.height - 1)
+    z = np.stack([np.asarray(d, np.float32) for d in depths])[tracks.frame, vi, ui].astype(np.float64)
+    z = np.where(np.isfinite(z) & (z > 0), z, 0.0)
+    first = np.full(tracks.tracks, -1, np.int64)  # each track's first observation with depth
+    o = np.flatnonzero(z > 0)
+    o = o[np.lexsort((tracks.frame[o], tracks.track[o]))]
+    starts = np.r_[True, tracks.track[o][1:] != tracks.track[o][:-1]] if len(o) else np.zeros(0, bool)
+    first[tracks.track[o[starts]]] = o[starts]
+    keep_track = first >= 0
+    obs = keep_track[tracks.track]
+    if keep_track.sum() < 10:
+        raise ValueError(f"only {int(keep_track.sum())} tracks have a depth reading to start from")
+    o1 = first[keep_track]
+    rays = np.c_[tracks.uv[o1], np.ones(len(o1))] @ np.linalg.inv(camera.K).T * z[o1, None]
+    pose1 = c2w_start[tracks.frame[o1]]
+    points = np.einsum("nij,nj->ni", pose1[:, :3, :3], rays) + pose1[:, :3, 3]
+    remap = np.cumsum(keep_track) - 1
+    frame, track, uv = tracks.frame[obs], remap[tracks.track[obs]], tracks.uv[obs]
+    res = bundle_adjust(camera, list(c2w_start), list(fixed), points, frame, track, uv, huber_px, max_nfev)
+    info = {"tracks": int(keep_track.sum()), "observations": int(len(frame)), "cost": float(res.cost_after),
+            "cost_start": float(res.cost_before),
+            "median_px": float(np.median(res.residual_px)), "nfev": int(res.nfev)}
+    return np.stack(res.poses), info
