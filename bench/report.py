@@ -191,6 +191,9 @@ def tracking_section() -> str:
                 txt = (f"from {start}: Sim3 {fmt(o['sim3']['rmse_m'] * 100)} cm, rotation "
                        f"{fmt(o['none']['rot_first_mean_deg'])} deg from the first GT pose / "
                        f"{fmt(o['none']['rot_fit_mean_deg'])} deg best-fit, {fmt(r['median_px'])} px median")
+                if "anchored" in r:
+                    txt += (f", SE3 {fmt(r['anchored']['se3']['rmse_m'] * 100)} cm with the scale of the GT baseline to "
+                            f"frame {r['anchored']['frame']}")
                 if "apart_from_first" in r:
                     a = r["apart_from_first"]
                     txt += (f", {fmt(a['sim3_rmse_m'] * 100)} cm / {fmt(a['rot_first_mean_deg'])} deg from the "
@@ -205,7 +208,9 @@ def tracking_section() -> str:
                 cells = [f"0 (global shutter): cost {fmt(opt['starts'][start]['cost'], 0)}"]
                 for readout, r in rs.items():
                     o = r["optimum"]
+                    se3 = fmt(r["anchored"]["se3"]["rmse_m"] * 100) if "anchored" in r else "-"
                     cells.append(f"{readout}: cost {fmt(r['cost'], 0)}, Sim3 {fmt(o['sim3']['rmse_m'] * 100)} cm, "
+                                 f"SE3 (anchored) {se3} cm, "
                                  f"rotation {fmt(o['none']['rot_first_mean_deg'])} / {fmt(o['none']['rot_fit_mean_deg'])} deg")
                 out.append(f"The same from {start} with the tracks unrolled for a rolling shutter, by readout (fraction "
                            "of the frame interval): " + "; ".join(cells) + f". The images prefer {opt['best_readout']}.")
