@@ -34,9 +34,10 @@ against the GT (what a tracker agreeing with the images as well as ``GT @ X`` wo
 trajectory that explains multi-frame KLT tracks best, a bundle adjustment of every frame on
 the reprojection error alone, started from the GT and from the mono estimate. Where both
 starts reach the same optimum, that optimum is what the images determine (with these
-intrinsics): its errors against the GT bound what an RGB-only tracker can reach except by chance. ``anchored``: the same optimum scaled about frame 0
-so that its baseline to frame 14 is the GT's, as the mono front end's late anchor does (its SE3
-ATE is what the optimum scores under the monocular scale protocol).
+intrinsics): its errors against the GT bound what an RGB-only tracker can reach except by
+chance. ``anchored``: the same optimum scaled about frame 0 so that its baseline to frame 14
+is the GT's, as the mono front end's late anchor does (its SE3 ATE is what the optimum scores
+under the monocular scale protocol).
 The same from the GT with the tracks unrolled for a rolling shutter of several readout times:
 the readout whose optimum costs least is the one the images prefer (no GT in that choice).
 

@@ -173,12 +173,12 @@ def frame_tracks(rgbs: Sequence[np.ndarray], klt: Optional[KltConfig] = None, st
 def best_explaining_poses(camera: PinholeCamera, tracks: FrameTracks, c2w_start: np.ndarray,
                           depths: Sequence[np.ndarray], huber_px: float = 2.0, max_nfev: int = 200,
                           fixed: Sequence[int] = (0,)) -> tuple[np.ndarray, dict]:
-    """Bundle adjustment of every frame (frame 0 fixed) and every track on the reprojection error,
-    started from ``c2w_start`` (N, 4, 4), the frames ``fixed`` held. The depth only places the points to start from: each
-    track's at its first observation with a reading in ``depths`` (N x (H, W) metres, 0 = none;
-    tracks never seen with depth are dropped). The result is what the images determine, up to
-    its scale (frame 0 alone holds the other six degrees of freedom): compare it after a Sim3
-    alignment or by its rotations. Returns the poses (N, 4, 4) and
+    """Bundle adjustment of every frame and every track on the reprojection error, started from
+    ``c2w_start`` (N, 4, 4) with the frames ``fixed`` held. The depth only places the points to
+    start from: each track's at its first observation with a reading in ``depths`` (N x (H, W)
+    metres, 0 = none; tracks never seen with depth are dropped). With frame 0 alone fixed the
+    result is what the images determine, up to its scale (the seventh degree of freedom):
+    compare it after a Sim3 alignment or by its rotations. Returns the poses (N, 4, 4) and
     ``{"tracks", "observations", "cost", "cost_start", "median_px", "nfev"}``."""
     c2w_start = np.asarray(c2w_start, np.float64)
     n = len(c2w_start)

@@ -337,7 +337,7 @@ class MonoFrontend:
     def _unroll_bootstrap(self, poses: dict, i0: int, index: int) -> None:
         """Once the bootstrap frames have poses: their tracked pixels (history, first pixels,
         observations) unrolled for the rolling shutter with each frame's rotation step."""
-        ids = sorted(poses)
+        ids = sorted(poses)  # each frame's step from the previous frame; the first frame takes the second's
         steps = {f: rotation_step(poses[ids[max(j - 1, 0)]], poses[ids[max(j, 1)]]) for j, f in enumerate(ids)}
         cam, r = self.camera, self.cfg.rolling_shutter
         self._hist = {f: (tids, unroll(cam, uvs, steps[f], r)) for f, (tids, uvs) in self._hist.items()}
@@ -414,9 +414,10 @@ class MonoFrontend:
             self.settle_scale(f"no tracked frame with an anchor pose in the first {2 * self.cfg.late_anchor_frames}")
         gray = to_u8(rgb)
         res = self.tracker.track(rgb)
-        hist = self.tracker.motion_history
-        if self.cfg.rolling_shutter and not res.lost and len(hist) == 2:
-            self._step = rotation_step(hist[0], hist[1])
+        if self.cfg.rolling_shutter and not res.lost:
+            hist = self.tracker.motion_history  # [previous frame, this frame]
+            if len(hist) == 2:
+                self._step = rotation_step(hist[0], hist[1])
         self._klt(gray)
         if res.lost and self.cfg.pnp_recovery:
             res = self._recover(rgb, res)
