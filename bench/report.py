@@ -179,7 +179,7 @@ def tracking_section() -> str:
                        f"the GT explains them to {fmt(off['gt_px'])} px, rotated by {fit(off['xyz']['rotvec_deg'])} "
                        f"to {fmt(off['xyz']['px_after'])} px (halves of the pairs: "
                        + ", ".join(fit(h) for h in off['xyz']['halves_rotvec_deg']) + "); "
-                       f"a tracker agreeing with the images that well scores {fmt(off['xyz']['floor_rot_first_mean_deg'])} "
+                       f"the GT so rotated scores {fmt(off['xyz']['floor_rot_first_mean_deg'])} "
                        f"deg from the first GT pose and {fmt(off['xyz']['floor_rot_fit_mean_deg'])} deg best-fit "
                        f"(x and z only: {fmt(off['xz']['floor_rot_first_mean_deg'])} / "
                        f"{fmt(off['xz']['floor_rot_fit_mean_deg'])} deg).")
