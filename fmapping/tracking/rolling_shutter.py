@@ -32,9 +32,7 @@ def unroll(camera: PinholeCamera, uv: np.ndarray, step: np.ndarray, readout: flo
     tau = readout * (uv[:, 1] - camera.height / 2.0) / camera.height
     rays = np.c_[(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy, np.ones(len(uv))]
     rot = Rotation.from_rotvec(tau[:, None] * np.asarray(step, np.float64).reshape(1, 3)).as_matrix()
-    q = np.einsum("nij,nj->ni", rot, rays)
-    z = np.where(np.abs(q[:, 2]) > 1e-9, q[:, 2], 1e-9)
-    return np.stack([camera.fx * q[:, 0] / z + camera.cx, camera.fy * q[:, 1] / z + camera.cy], -1)
+    return camera.world_to_pixels(np.eye(4), np.einsum("nij,nj->ni", rot, rays))[0]
 
 
 def rotation_step(c2w_prev: np.ndarray, c2w_cur: np.ndarray) -> np.ndarray:
