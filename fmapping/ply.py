@@ -2,7 +2,9 @@
 
 Files written here open in Open3D, MeshLab and CloudCompare: vertex properties
 ``x y z`` (float32) and optional ``red green blue`` (uchar); faces as
-``list uchar int vertex_indices``.
+``list uchar int vertex_indices``. Reading goes through ``plyfile`` and takes what other
+tools write too: any byte order, extra vertex / face properties (ignored), quads and
+polygons (fan-triangulated).
 """
 from __future__ import annotations
 
@@ -11,13 +13,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
+import plyfile
 
 
 @dataclass
@@ -79,84 +75,93 @@ def write_ply(path, points, colors=None, faces=None, binary: bool = True) -> Pat
 
 
 def read_ply(path) -> PlyData:
-    """Read vertices (x, y, z, optional red/green/blue) and triangle faces."""
+    """Read vertices (x, y, z, optional red/green/blue) and faces as triangles.
+
+    Polygons with k > 3 corners become k - 2 triangles fanned from their first corner, in file
+    order; faces with fewer than 3 corners are dropped. Other properties are ignored.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"PLY file not found: {path}")
     with open(path, "rb") as f:
         if f.readline().strip() != b"ply":
             raise ValueError(f"{path}: not a PLY file (first line is not 'ply')")
-        fmt, elements = None, []
-        while True:
-            line = f.readline()
-            if not line:
-                raise ValueError(f"{path}: PLY header has no end_header")
-            tok = line.decode("ascii", "replace").split()
-            if not tok or tok[0] in ("comment", "obj_info"):
-                continue
-            if tok[0] == "format":
-                fmt = tok[1]
-            elif tok[0] == "element":
-                elements.append([tok[1], int(tok[2]), []])
-            elif tok[0] == "property":
-                if tok[1] == "list":
-                    elements[-1][2].append((tok[4], "list", _PLY_TYPES[tok[2]], _PLY_TYPES[tok[3]]))
-                else:
-                    elements[-1][2].append((tok[2], _PLY_TYPES[tok[1]]))
-            elif tok[0] == "end_header":
-                break
-        if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-            raise ValueError(f"{path}: unsupported PLY format {fmt!r}")
-        data = {}
-        if fmt == "ascii":
-            rest = f.read().decode("ascii").split()
-            pos = 0
-            for name, count, props in elements:
-                rows = []
-                for _ in range(count):
-                    row = []
-                    for p in props:
-                        if p[1] == "list":
-                            k = int(rest[pos]); pos += 1
-                            row.append([float(x) for x in rest[pos:pos + k]]); pos += k
-                        else:
-                            row.append(float(rest[pos])); pos += 1
-                    rows.append(row)
-                data[name] = (props, rows)
-        else:
-            end = "<" if fmt == "binary_little_endian" else ">"
-            for name, count, props in elements:
-                if any(p[1] == "list" for p in props):
-                    if len(props) != 1:
-                        raise ValueError(f"{path}: mixed list/scalar properties in element {name!r} not supported")
-                    _, _, ct, it = props[0]
-                    rows = []
-                    for _ in range(count):
-                        k = int(np.frombuffer(f.read(np.dtype(ct).itemsize), end + ct)[0])
-                        rows.append([np.frombuffer(f.read(k * np.dtype(it).itemsize), end + it).tolist()])
-                    data[name] = (props, rows)
-                else:
-                    dt = np.dtype([(p[0], end + p[1]) for p in props])
-                    buf = f.read(dt.itemsize * count)
-                    if len(buf) != dt.itemsize * count:
-                        raise ValueError(f"{path}: truncated PLY data in element {name!r}")
-                    data[name] = (props, np.frombuffer(buf, dt))
-    if "vertex" not in data:
+    try:
+        ply = _read_plyfile(path)
+    except plyfile.PlyParseError as e:
+        raise ValueError(f"{path}: {e}") from None
+    if "vertex" not in ply:
         raise ValueError(f"{path}: PLY has no vertex element")
-    props, v = data["vertex"]
-    names = [p[0] for p in props]
-    if isinstance(v, list):
-        arr = np.asarray(v, dtype=np.float64)
-        col = {n: arr[:, i] for i, n in enumerate(names)} if len(arr) else {n: np.zeros(0) for n in names}
-    else:
-        col = {n: v[n] for n in names}
-    pts = np.stack([col["x"], col["y"], col["z"]], -1).astype(np.float64)
+    v = ply["vertex"].data
+    names = v.dtype.names or ()
+    missing = [c for c in ("x", "y", "z") if c not in names]
+    if missing:
+        raise ValueError(f"{path}: vertex element lacks {', '.join(missing)}")
+    pts = np.stack([v["x"], v["y"], v["z"]], -1).astype(np.float64)
     colors = None
-    if all(c in col for c in ("red", "green", "blue")):
-        colors = np.stack([col["red"], col["green"], col["blue"]], -1).astype(np.uint8)
+    if all(c in names for c in ("red", "green", "blue")):
+        colors = np.stack([v["red"], v["green"], v["blue"]], -1)
+        if colors.dtype.kind == "f" and colors.size and colors.max() <= 1.0:
+            colors = np.round(colors * 255)  # float colours in [0, 1] (some exporters)
+        colors = np.clip(colors, 0, 255).astype(np.uint8)
     faces = None
-    if "face" in data:
-        fprops, rows = data["face"]
-        tri = [r[0] for r in rows if len(r[0]) == 3]
-        faces = np.asarray(tri, dtype=np.int64).reshape(-1, 3)
+    if "face" in ply:
+        fe = ply["face"]
+        key = next((k for k in _FACE_LISTS if k in fe.data.dtype.names), None)
+        if key is None:
+            raise ValueError(f"{path}: face element has no vertex_indices / vertex_index list")
+        faces = _triangles(fe.data[key])
+        if len(faces) and (faces.min() < 0 or faces.max() >= len(pts)):
+            raise ValueError(f"{path}: face vertex index out of range 0..{len(pts) - 1}")
     return PlyData(pts, colors, faces)
+
+
+# names other tools give the face's corner list (Open3D / MeshLab write vertex_indices, some vertex_index)
+_FACE_LISTS = ("vertex_indices", "vertex_index")
+
+
+def _read_plyfile(path: Path) -> "plyfile.PlyData":
+    """plyfile reads a binary list property one row at a time in Python (seconds per million
+    faces) unless told the list length, in which case it maps the whole element at once. Try
+    all-triangle faces (what the writer above and most meshers produce), then all-quad faces; a
+    file with mixed polygons fails both and is read row by row. A wrong guess shows as a length
+    mismatch or as too few bytes for the element; the row-by-row read reports a truly short file."""
+    for k in (3, 4):
+        try:
+            return _loaded(plyfile.PlyData.read(str(path), known_list_len={"face": dict.fromkeys(_FACE_LISTS, k)}))
+        except plyfile.PlyElementParseError as e:
+            if e.message not in ("unexpected list length", "early end-of-file"):
+                raise
+    return _loaded(plyfile.PlyData.read(str(path), mmap=False))
+
+
+def _loaded(ply: "plyfile.PlyData") -> "plyfile.PlyData":
+    # copy memory-mapped elements into memory: the file may be replaced or deleted after reading
+    for el in ply.elements:
+        if isinstance(el.data, np.memmap):
+            el.data = np.array(el.data)
+    return ply
+
+
+def _triangles(lists: np.ndarray) -> np.ndarray:
+    """(F, 3) int64 triangles from a face list column: a (F, k) array (fixed length k) or an
+    object array of per-face index arrays; polygons fan out from their first corner."""
+    if lists.dtype != object:
+        rows = np.asarray(lists, np.int64).reshape(len(lists), -1)
+        return _fan(rows) if rows.shape[1] >= 3 else np.zeros((0, 3), np.int64)
+    n = np.fromiter((len(r) for r in lists), np.int64, len(lists))
+    ntri = np.maximum(n - 2, 0)
+    first = np.concatenate([[0], np.cumsum(ntri)[:-1]]) if len(n) else n  # first triangle of each face
+    out = np.empty((int(ntri.sum()), 3), np.int64)
+    for k in np.unique(n[n >= 3]):  # one vectorised fan per polygon size, scattered back in file order
+        sel = np.flatnonzero(n == k)
+        tris = _fan(np.stack(lists[sel]).astype(np.int64))  # (len(sel) * (k - 2), 3), grouped per face
+        out[(first[sel, None] + np.arange(k - 2)).reshape(-1)] = tris
+    return out
+
+
+def _fan(rows: np.ndarray) -> np.ndarray:
+    """(F, k) polygons -> (F * (k - 2), 3) triangles (c0, ci, ci+1), the k - 2 of each face together."""
+    k = rows.shape[1]
+    tris = np.stack([np.repeat(rows[:, :1], k - 2, 1), rows[:, 1:-1], rows[:, 2:]], -1)
+    return tris.reshape(-1, 3)
