@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import logging
 import math
 import time
 from pathlib import Path
@@ -225,18 +224,26 @@ def test_tum_ground_truth_is_interpolated_with_gaps(tmp_path):
     assert ds.describe()["gt_poses"] == 7
 
 
-def test_tum_name_table_and_unknown_default(tmp_path, caplog):
+def test_tum_name_table_and_unknown_camera_refused(tmp_path, capsys):
     make_tum(tmp_path / "rgbd_dataset_freiburg2_xyz", n=2)
     ds = open_dataset(tmp_path / "rgbd_dataset_freiburg2_xyz")
     assert ds.raw_camera.dist == (0.2312, -0.7849, -0.0033, -0.0001, 0.9172) and ds.camera.dist is None
     assert ds.camera.fx == pytest.approx(520.9 / 20) and ds.meta["undistorted"] is True
-    make_tum(tmp_path / "mystery", n=2)
-    with caplog.at_level(logging.WARNING, logger="fmapping.datasets"):
-        ds = open_dataset(tmp_path / "mystery")
-    want = (517.3 / 20, 516.5 / 20, 319.1 / 20 - 0.5, 255.8 / 20 - 0.5)
-    np.testing.assert_allclose((ds.camera.fx, ds.camera.fy, ds.camera.cx, ds.camera.cy), want, rtol=1e-12)
-    assert ds.raw_camera.dist is None
-    assert "default" in ds.meta["camera_source"] and any("calib.txt" in r.message for r in caplog.records)
+    for name, rig in (("tum_fr1_desk", "freiburg1"), ("fr3", "freiburg3")):
+        make_tum(tmp_path / name, n=2)
+        assert rig in open_dataset(tmp_path / name).meta["camera_source"]
+    # not a TUM recording, no calib.txt: no guessed camera, an error saying how to give one
+    root = tmp_path / "mystery"
+    make_tum(root, n=2)
+    _raises([str(root), "calib.txt", "--camera fx,fy,cx,cy"], open_dataset, root)
+    assert cli_main(["info", "--data", str(root)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(root) in err and "--camera" in err
+    ds = open_dataset(root, camera="30,30,15.5,11.5")
+    assert ds.meta["camera_source"] == "--camera" and ds.camera.fx == 30.0
+    (root / "calib.txt").write_text("31 32 15.5 11.5\n")
+    ds = open_dataset(root)
+    assert ds.meta["camera_source"].endswith("calib.txt") and (ds.camera.fx, ds.camera.fy) == (31.0, 32.0)
 
 
 def test_calib_txt_wins_and_sets_depth_factor(tmp_path):

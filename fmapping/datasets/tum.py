@@ -12,7 +12,8 @@
 * Intrinsics: ``calib.txt`` when present (first line ``fx fy cx cy [k1 k2 p1 p2 [k3]]``,
   optional line ``depth_factor F``; a file holding just the named rig's own four numbers
   gets that rig's distortion, see :func:`complete_tum_distortion`), else the TUM table by sequence name
-  (freiburg1/2/3 or fr1/2/3 in the folder name), else freiburg1 without distortion.
+  (freiburg1/2/3 or fr1/2/3 in the folder name), else a :class:`DatasetError` asking for
+  ``--camera`` or a ``calib.txt`` (a guessed camera would only show up as a bad map).
   Depth factor 5000 raw units per metre unless ``calib.txt`` says otherwise.
 * Folders written by ``fmapping synth`` (``scene.json`` with ``"generator":
   "fmapping.synthetic"``) are read the same way with kind ``"synthetic"``; the paths of
@@ -100,17 +101,21 @@ def read_calib(path: Path) -> tuple[list[float], int, Optional[float]]:
 
 
 def tum_camera(root: Path, size: tuple[int, int]) -> tuple[PinholeCamera, str, Optional[str]]:
-    """Intrinsics from the TUM table by folder name (rescaled from 640x480 if needed) -> (camera, source, note)."""
+    """Intrinsics from the TUM table by folder name (rescaled from 640x480 if needed) -> (camera, source, note);
+    :class:`DatasetError` when the name is not a TUM sequence's."""
     rig = sequence_rig(root.resolve().name)
-    if rig is not None:
-        k, dist = TUM_INTRINSICS[rig]
-        source = f"TUM {rig} calibration (by folder name)"
-    else:
-        k, dist = TUM_INTRINSICS["freiburg1"][0], None
-        source = "default: TUM freiburg1 intrinsics without distortion (unknown sequence, no calib.txt)"
-        log.warning("%s: no calib.txt and no freiburg1/2/3 in the folder name; %s", root, source)
+    if rig is None:
+        # only a real TUM recording has published intrinsics; any other camera given fr1's would
+        # track and map with a wrong focal length and no error at all
+        raise DatasetError(
+            f"{root}: TUM-layout folder without calib.txt, and its name is not a TUM RGB-D sequence "
+            "(freiburg1/2/3 or fr1/fr2/fr3), so its camera intrinsics are unknown. Give them with "
+            "--camera fx,fy,cx,cy[,k1,k2,p1,p2[,k3]] (in Python open_dataset(..., camera='fx,fy,cx,cy')), "
+            f"or write {root / 'calib.txt'} with the first line 'fx fy cx cy [k1 k2 p1 p2 [k3]]'")
+    k, dist = TUM_INTRINSICS[rig]
+    source = f"TUM {rig} calibration (by folder name)"
     nominal = PinholeCamera(*k, width=640, height=480, dist=dist)
-    cam, note = scaled_default(nominal, size, f"TUM {rig or 'freiburg1'}")
+    cam, note = scaled_default(nominal, size, f"TUM {rig}")
     return cam, source, note
 
 
