@@ -53,8 +53,25 @@ def _coerce(val: Any, tp, where: str) -> Any:
         raise ConfigError(f"{where}: expected true/false, got {val!r}")
     if tp in (int, float, str) and not isinstance(val, tp):
         raise ConfigError(f"{where}: expected {tp.__name__}, got {val!r}")
-    if origin in (tuple, list) and isinstance(val, (list, tuple)):
-        return tuple(val) if origin is tuple else list(val)
+    if (tp is tuple or origin is tuple) and isinstance(val, (list, tuple)):
+        # YAML has only lists: give a tuple field tuples again (nested too, e.g. init_rounds),
+        # so a dumped default loads back equal to the default
+        return _tuples(val)
+    if origin is list and isinstance(val, (list, tuple)):
+        return list(val)
+    return val
+
+
+def _tuples(val: Any) -> Any:
+    return tuple(_tuples(v) for v in val) if isinstance(val, (list, tuple)) else val
+
+
+def _plain(val: Any) -> Any:
+    """Tuples -> lists, recursively (safe YAML has no tuples)."""
+    if isinstance(val, dict):
+        return {k: _plain(v) for k, v in val.items()}
+    if isinstance(val, (list, tuple)):
+        return [_plain(v) for v in val]
     return val
 
 
@@ -85,3 +102,16 @@ def load_config(default: T, path: Optional[str | Path] = None, overrides: Option
 
 def to_dict(cfg) -> dict:
     return dataclasses.asdict(cfg)
+
+
+class _Dumper(yaml.SafeDumper):
+    """Sections as blocks, lists on one line (``init_rounds: [[0, 32], [3, 64]]``), for reading and editing."""
+
+
+_Dumper.add_representer(list, lambda d, v: d.represent_sequence("tag:yaml.org,2002:seq", v, flow_style=True))
+
+
+def to_yaml(cfg) -> str:
+    """A config (dataclass or dict) as YAML that :func:`load_config` reads back to an equal config."""
+    d = to_dict(cfg) if dataclasses.is_dataclass(cfg) else cfg
+    return yaml.dump(_plain(d), Dumper=_Dumper, sort_keys=False, default_flow_style=False)

@@ -42,3 +42,24 @@ def test_bad_config_is_named(tmp_path, text, match):
 def test_missing_config_file(tmp_path):
     with pytest.raises(ConfigError, match="not found"):
         load_config(Outer(), tmp_path / "nope.yaml")
+
+
+@dataclass
+class WithTuples:
+    rounds: tuple = ((0, 32), (3, 64))
+    scales: tuple[float, ...] = (1.0,)
+    names: list = field(default_factory=lambda: ["a"])
+
+
+def test_yaml_lists_become_tuples_for_tuple_fields_and_dump_round_trips(tmp_path):
+    from fmapping.config import to_yaml
+
+    p = tmp_path / "c.yaml"
+    p.write_text("rounds: [[1, 2], [3, 4]]\nscales: [2]\nnames: [b, c]\n")
+    cfg = load_config(WithTuples(), p)
+    assert cfg.rounds == ((1, 2), (3, 4)) and cfg.scales == (2,) and cfg.names == ["b", "c"]
+    p.write_text(to_yaml(cfg))
+    assert "rounds: [[1, 2], [3, 4]]" in p.read_text()
+    assert load_config(WithTuples(), p) == cfg
+    p.write_text(to_yaml(Outer()))
+    assert load_config(Outer(), p) == Outer()
