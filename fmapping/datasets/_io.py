@@ -106,16 +106,25 @@ def resolve_image_path(path: Path) -> Path:
 def resolve_camera(
     override: CameraArg, default: Optional[PinholeCamera], size: tuple[int, int], source: str
 ) -> tuple[PinholeCamera, str]:
-    """The camera to use: ``override`` (``--camera`` string or object) wins over ``default``.
+    """The camera to use: ``override`` (``--camera`` string, calibration file or object) wins over ``default``.
+
+    ``override`` may name a calibration file (``calib.txt`` / ``camera.yaml`` format, see
+    :mod:`fmapping.datasets.calib`). Without either, the error says how to give intrinsics.
 
     Returns the camera (of the files as stored, possibly distorted) and a note of where
     the intrinsics came from.
     """
     w, h = size
     if override is None:
-        if default is None:  # pragma: no cover - readers always pass one
-            raise DatasetError("no intrinsics known: pass --camera fx,fy,cx,cy")
+        if default is None:
+            raise DatasetError(no_intrinsics_message(source))
         return default, source
+    if isinstance(override, (str, Path)) and Path(override).is_file():
+        # ``--camera path/to/camera.yaml``: the only way to give a file to a source that has no
+        # folder of its own (a webcam) or whose folder the user cannot write to
+        from fmapping.datasets.calib import read_camera_file
+
+        return read_camera_file(Path(override), size), str(override)
     if isinstance(override, PinholeCamera):
         if (override.width, override.height) != (w, h):
             raise DatasetError(
@@ -126,6 +135,16 @@ def resolve_camera(
         return PinholeCamera.from_string(str(override), w, h), "--camera"
     except ValueError as e:
         raise DatasetError(f"--camera {override!r}: {e}") from None
+
+
+def no_intrinsics_message(what: str) -> str:
+    """The error for a source without intrinsics: says every way to give them (never guessed)."""
+    return (
+        f"{what}: no camera intrinsics. Give them with --camera fx,fy,cx,cy[,k1,k2,p1,p2[,k3]] "
+        "(or --camera path/to/camera.yaml; in Python open_dataset(..., camera='fx,fy,cx,cy')), "
+        "or put a calib.txt (one line 'fx fy cx cy [k1 k2 p1 p2 [k3]]') or a camera.yaml "
+        "(fx, fy, cx, cy [, k1, k2, p1, p2, k3, fps] keys, or a ROS camera_info yaml) next to the images"
+    )
 
 
 def make_camera(vals: Sequence[float], size: tuple[int, int], where: str) -> PinholeCamera:
@@ -219,6 +238,10 @@ class ImageSequence(Dataset):
                 f"{cam.width}x{cam.height}: {path}"
             )
 
+    def _read_depth(self, path: Path) -> np.ndarray:
+        """Depth in metres on the colour image's pixel grid (readers with a separate depth camera override it)."""
+        return read_depth(path, self.depth_scale, self.depth_invalid)
+
     def __getitem__(self, i: int) -> Frame:
         n = len(self)
         if not isinstance(i, (int, np.integer)):
@@ -234,7 +257,7 @@ class ImageSequence(Dataset):
         depth = None
         dp = self.depth_paths[i]
         if dp is not None and self.depth_scale is not None:
-            depth = read_depth(Path(dp), self.depth_scale, self.depth_invalid)
+            depth = self._read_depth(Path(dp))
             self._check_size(depth, Path(dp))
         cam = self.raw_camera
         if cam.dist is not None:
@@ -266,13 +289,16 @@ def build_sequence(
     max_frames: Optional[int],
     depth_invalid: Optional[int] = None,
     background: Background = WHITE,
+    cls: type = ImageSequence,
+    extra: Optional[dict] = None,
 ) -> ImageSequence:
-    """Assemble an :class:`ImageSequence` and add the common ``meta`` entries."""
+    """Assemble an :class:`ImageSequence` (or subclass ``cls`` with the fields ``extra``) and add the
+    common ``meta`` entries."""
     meta = dict(meta)
     meta["undistorted"] = raw_camera.dist is not None
     if raw_camera.dist is not None:
         meta["distortion"] = list(raw_camera.dist)
-    ds = ImageSequence(
+    ds = cls(
         root=Path(root),
         camera=raw_camera.undistorted(),
         timestamps=np.asarray(timestamps, np.float64),
@@ -285,6 +311,7 @@ def build_sequence(
         raw_camera=raw_camera,
         depth_invalid=depth_invalid,
         background=tuple(int(c) for c in background),
+        **(extra or {}),
     )
     ds.truncate(max_frames)
     if ds.depth_scale is not None:

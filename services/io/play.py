@@ -14,6 +14,10 @@ before it appeared. At the end it waits
 for the last acknowledgement, then publishes ``Control(stop, {reason: end, last_seq})``.
 Control: pause / resume / stop / reset (restart from the first frame; frame numbers
 keep increasing) / start (begin when launched with ``--paused``).
+
+``--data camera:N`` streams a live webcam (:class:`fmapping.datasets.live.LiveCamera`, intrinsics
+from ``--camera``): frames are read as they are sent, until the device stops or ``--max-frames``;
+it has no length, so no ``frames_total``, no ``--loop``, and ``reset`` just goes on.
 """
 from __future__ import annotations
 
@@ -29,8 +33,10 @@ from services.common import Peers, Service, add_common_args, names, service_pars
 
 
 def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    p.add_argument("--data", required=True, help="dataset folder (any layout fmapping reads)")
-    p.add_argument("--camera", default=None, help="override intrinsics fx,fy,cx,cy[,k1,k2,p1,p2[,k3]]")
+    p.add_argument("--data", required=True, help="dataset folder, video, ROS bag or image folder (any source "
+                   "fmapping reads), or camera:N for a live webcam (needs --camera)")
+    p.add_argument("--camera", default=None, help="override intrinsics fx,fy,cx,cy[,k1,k2,p1,p2[,k3]] "
+                   "or a calib.txt / camera.yaml path")
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--fps", type=float, default=0.0, help="frames per second (0 = as fast as consumers keep up)")
     p.add_argument("--window", type=int, default=4, help="frames in flight beyond the slowest acknowledgement")
@@ -147,16 +153,20 @@ class Player:
     # -- main loop
     def run(self) -> int:
         svc, ds, a = self.svc, self.ds, self.args
-        n = len(ds)
+        live = getattr(ds, "live", False)  # a LiveCamera: no length, frames come until ds[i] raises IndexError
+        n = None if live else len(ds)
         if n == 0:
             raise ValueError(f"{a.data}: dataset has no frames")
         svc.status.update(state="waiting")
-        svc.counters.set("frames_total", n)
+        if n is not None:
+            svc.counters.set("frames_total", n)
         if not self.wait_for_peers():
             return 0
         svc.status.update(state="running")
-        ts = np.asarray(ds.timestamps, np.float64)
-        period = float(ts[-1] - ts[0]) + (float(np.median(np.diff(ts))) if n > 1 else 1.0)
+        period = 0.0
+        if not live:
+            ts = np.asarray(ds.timestamps, np.float64)
+            period = float(ts[-1] - ts[0]) + (float(np.median(np.diff(ts))) if n > 1 else 1.0)
         loop, i = 0, 0
         t_start = time.monotonic()
         sent_at_start = 0
@@ -169,7 +179,7 @@ class Player:
                 i, loop = 0, 0
                 svc.counters.inc("resets")
                 continue
-            if i >= n:
+            if n is not None and i >= n:
                 if not a.loop:
                     break
                 i, loop = 0, loop + 1
@@ -185,7 +195,12 @@ class Player:
                 if self._halt() or self.paused.is_set() or self.reset_requested.is_set():
                     continue
             t0 = time.perf_counter()
-            f = ds[i]
+            try:
+                f = ds[i]
+            except IndexError:
+                if not live:
+                    raise
+                break  # the camera stopped (or --max-frames reached): end of sequence as for a dataset
             seq = self.seq + 1
             stamp = float(f.timestamp) + loop * period
             msg = P.frame_from_dataset(f, seq=seq, with_depth=not a.no_depth)
@@ -229,7 +244,10 @@ def main(argv=None, session=None, keys=None, dataset=None) -> int:
     if dataset is None:
         from fmapping.datasets import open_dataset
 
-        dataset = open_dataset(args.data, camera=args.camera, max_frames=args.max_frames)
+        # live=True: ``--data camera:N`` streams a webcam (a LiveCamera, read in order, no length)
+        dataset = open_dataset(args.data, camera=args.camera, max_frames=args.max_frames, live=True)
+    if getattr(dataset, "live", False) and args.loop:
+        raise SystemExit(f"--loop: {args.data} is a live camera, it cannot start over")
     with Service("play", args, session=session, keys=keys) as svc:
         svc.start_heartbeat()
         return Player(svc, dataset, args).run()
