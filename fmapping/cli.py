@@ -8,15 +8,19 @@
     fmapping eval traj  --est E.txt --gt G.txt [--align sim3|se3|none]
     fmapping up    [--data DIR] [--poses tracker|gt] [--out OUT]
     fmapping demo  [--out OUT] [--poses tracker|gt]
+    fmapping config dump [map|slam|up]
+    fmapping --version
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
 import json
+import os
 import signal
 import sys
 import threading
+from pathlib import Path
 from typing import Optional, Sequence
 
 from fmapping.runtime import retain_freed_memory
@@ -24,8 +28,8 @@ from fmapping.runtime import retain_freed_memory
 
 def _add_data_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", required=True, help="dataset folder (TUM, Replica, 7-Scenes, NeRF transforms.json, fmapping synth)")
-    p.add_argument("--camera", default=None, help="override intrinsics: fx,fy,cx,cy[,k1,k2,p1,p2[,k3]]")
-    p.add_argument("--max-frames", type=int, default=None, help="use only the first N frames")
+    p.add_argument("--camera", default=None, help="override intrinsics: fx,fy,cx,cy[,k1,k2,p1,p2[,k3]] (default: the dataset's own, e.g. its calib.txt)")
+    p.add_argument("--max-frames", type=int, default=None, help="use only the first N frames (default: all)")
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -38,13 +42,14 @@ def _size(text: str) -> tuple[int, int]:
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="fmapping", description="Factorized neural field mapping for dense RGB SLAM.")
+    ap.add_argument("--version", action="version", version=f"%(prog)s {version()}")
     sub = ap.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("synth", help="generate a synthetic indoor scene in TUM layout with GT mesh and clouds")
-    p.add_argument("--out", required=True)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--frames", type=int, default=200)
-    p.add_argument("--size", type=_size, default=(320, 240), help="WxH")
+    p.add_argument("--out", required=True, help="folder to write the scene to")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the room layout and the camera path")
+    p.add_argument("--frames", type=int, default=200, help="number of frames")
+    p.add_argument("--size", type=_size, default=(320, 240), help="image size WxH (default: 320x240)")
 
     p = sub.add_parser("info", help="describe a dataset: format, frames, intrinsics, depth scale, GT")
     _add_data_args(p)
@@ -52,53 +57,153 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("map", help="build a map from images with given poses")
     _add_data_args(p)
     p.add_argument("--poses", default="gt", help="'gt' or a TUM trajectory file")
-    p.add_argument("--out", required=True)
-    p.add_argument("--config", default=None, help="YAML overrides of the mapper config")
-    p.add_argument("--field", default=None, choices=["cp", "vm", "mlp", "grid"])
+    p.add_argument("--out", required=True, help="output folder: map.ply, mesh.ply, traj.txt, stats.json")
+    p.add_argument("--config", default=None,
+                   help="YAML overrides of the mapper config (all keys: fmapping config dump map; default: none)")
+    p.add_argument("--field", default=None, choices=["cp", "vm", "mlp", "grid"],
+                   help="field type (default: the config's field.kind, cp)")
     p.add_argument("--use-depth", action="store_true", help="supervise with depth when the dataset has it")
-    p.add_argument("--device", default="auto")
+    p.add_argument("--device", default="auto", help="torch device: auto (CUDA when present, else CPU), cpu, cuda")
 
     p = sub.add_parser("slam", help="track and map from RGB (full SLAM loop)")
     _add_data_args(p)
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, help="output folder: traj.txt, map.ply, mesh.ply, stats.json")
     p.add_argument("--poses", default="photometric", help="photometric | kiss-icp | gt | PATH.txt")
-    p.add_argument("--config", default=None)
-    p.add_argument("--use-depth", action="store_true")
-    p.add_argument("--device", default="auto")
+    p.add_argument("--config", default=None,
+                   help="YAML overrides of the SLAM config (all keys: fmapping config dump slam; default: none)")
+    p.add_argument("--use-depth", action="store_true", help="use depth when the dataset has it")
+    p.add_argument("--device", default="auto", help="torch device: auto (CUDA when present, else CPU), cpu, cuda")
     p.add_argument("--no-export", dest="export", action="store_false",
                    help="skip map.ply / mesh.ply at the end (traj.txt and stats.json are still written)")
 
     p = sub.add_parser("eval", help="evaluate reconstructions and trajectories")
     esub = p.add_subparsers(dest="what", required=True)
     e = esub.add_parser("recon", help="accuracy / completion / completion ratio (NICE-SLAM protocol)")
-    e.add_argument("--pred", required=True)
-    e.add_argument("--gt", required=True)
-    e.add_argument("--samples", type=int, default=200_000)
+    e.add_argument("--pred", required=True, help="reconstruction: PLY point cloud or mesh")
+    e.add_argument("--gt", required=True, help="ground truth: PLY point cloud or mesh")
+    e.add_argument("--samples", type=int, default=200_000, help="points sampled from each mesh")
     e.add_argument("--threshold", type=float, default=0.05, help="completion-ratio distance in metres")
-    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--seed", type=int, default=0, help="random seed of the mesh sampling")
     e = esub.add_parser("traj", help="ATE RMSE after Umeyama alignment, orientation error after an "
                                      "orientation-only fit, and RPE")
-    e.add_argument("--est", required=True)
-    e.add_argument("--gt", required=True)
-    e.add_argument("--align", default="sim3", choices=["sim3", "se3", "none"])
-    e.add_argument("--max-dt", type=float, default=0.02)
+    e.add_argument("--est", required=True, help="estimated trajectory (TUM format)")
+    e.add_argument("--gt", required=True, help="ground-truth trajectory (TUM format)")
+    e.add_argument("--align", default="sim3", choices=["sim3", "se3", "none"], help="alignment before the ATE")
+    e.add_argument("--max-dt", type=float, default=0.02, help="seconds: timestamps further apart do not match")
     e.add_argument("--delta", type=int, default=1, help="RPE frame step")
 
     p = sub.add_parser("up", help="run the multi-process system (io, tracker, mapper over zenoh)")
     p.add_argument("--data", default=None, help="dataset folder (default: a generated synthetic scene)")
-    p.add_argument("--poses", default="tracker", choices=["tracker", "gt", "external"])
-    p.add_argument("--out", default="out/up")
+    p.add_argument("--poses", default="tracker", choices=["tracker", "gt", "external"],
+                   help="pose source of the mapper: the RGB-only tracker, the dataset's GT, or an external "
+                        "producer")
+    p.add_argument("--out", default="out/up", help="output folder: map.ply, mesh.ply, traj.txt, stats.json, logs/")
     p.add_argument("--fps", type=float, default=0.0, help="playback rate (0 = as fast as consumers keep up)")
-    p.add_argument("--config", default=None)
+    p.add_argument("--config", default=None, help="YAML with mapper / tracker / launcher sections "
+                                                  "(all keys: fmapping config dump up; default: none)")
 
     p = sub.add_parser("demo", help="the multi-process system on the embedded synthetic default, with metrics")
-    p.add_argument("--out", default="out/demo")
-    p.add_argument("--frames", type=int, default=200)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="out/demo", help="output folder (the scene goes to OUT/scene)")
+    p.add_argument("--frames", type=int, default=200, help="frames of the generated scene")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the generated scene")
     p.add_argument("--poses", default="tracker", choices=["tracker", "gt"],
                    help="tracker: RGB-only tracking (default); gt: map with the ground-truth poses")
     p.add_argument("--config", default=None, help="fmapping up config (mapper / tracker / launcher sections)")
+
+    p = sub.add_parser("config", help="show the configs that --config files override")
+    csub = p.add_subparsers(dest="action", required=True)
+    c = csub.add_parser("dump", help="print the full default config as YAML (a starting point for --config)")
+    c.add_argument("which", nargs="?", default="map", choices=CONFIGS,
+                   help="map: the mapper (fmapping map); slam: fmapping slam; up: the mapper / tracker / launcher "
+                        "sections of fmapping up and demo")
+
+    _show_defaults(ap)
     return ap
+
+
+class _DefaultsHelp(argparse.ArgumentDefaultsHelpFormatter):
+    """Appends '(default: X)' to a flag's help, except where there is nothing to say (None, an
+    on/off flag) or the text already says it in words."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if action.default is None or isinstance(action.default, bool) or "default" in text:
+            return text
+        return super()._get_help_string(action)
+
+
+def _show_defaults(parser: argparse.ArgumentParser) -> None:
+    # set on every sub-parser after they are built: flags added later by any command get it too
+    parser.formatter_class = _DefaultsHelp
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sp in action.choices.values():
+                _show_defaults(sp)
+
+
+def version() -> str:
+    """The installed distribution's version; the package's own when run from an uninstalled tree."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as dist_version
+
+    try:
+        return dist_version("fmapping")
+    except PackageNotFoundError:
+        from fmapping import __version__
+
+        return __version__
+
+
+CONFIGS = ("map", "slam", "up")
+
+
+def default_config(which: str):
+    """The default config ``fmapping <which> --config FILE`` starts from: a dataclass, or for ``up``
+    the dict of its sections."""
+    if which == "map":
+        from fmapping.mapper import MapperConfig
+
+        return MapperConfig()
+    if which == "slam":
+        from fmapping.slam import SlamConfig
+
+        return SlamConfig()
+    if which == "up":
+        from fmapping.launcher import UpConfig, up_config_dict
+
+        return up_config_dict(UpConfig())
+    raise ValueError(f"no config {which!r} (one of {', '.join(CONFIGS)})")
+
+
+def cmd_config(a) -> int:
+    from fmapping.config import to_yaml
+
+    sys.stdout.write(f"# fmapping {a.which} config, every key at its default (fmapping {version()}).\n"
+                     f"# Keep the keys to change and pass the file with: fmapping {a.which} --config FILE\n")
+    sys.stdout.write(to_yaml(default_config(a.which)))
+    return 0
+
+
+def check_out(path) -> Path:
+    """Create the output folder (with its parents) and make sure files can be written in it, so that
+    a bad --out ends the command at once with one line naming it, not later inside a run."""
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a folder")
+    parent = next((p for p in out.parents if p.exists()), None)
+    if parent is not None and not parent.is_dir():
+        raise ValueError(f"--out {out}: {parent} is a file, not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"--out {out}: cannot create the folder: {e.strerror or e}") from None
+    probe = out / f".fmapping-write-test-{os.getpid()}"
+    try:  # a real write: permission bits say nothing for root or a read-only mount
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise ValueError(f"--out {out}: cannot write in the folder: {e.strerror or e}") from None
+    return out
 
 
 def _print_json(d: dict) -> None:
@@ -189,7 +294,7 @@ def cmd_demo(a) -> int:
 
 COMMANDS = {
     "synth": cmd_synth, "info": cmd_info, "map": cmd_map, "slam": cmd_slam,
-    "eval": cmd_eval, "up": cmd_up, "demo": cmd_demo,
+    "eval": cmd_eval, "up": cmd_up, "demo": cmd_demo, "config": cmd_config,
 }
 
 
@@ -197,12 +302,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     retain_freed_memory()
     try:
+        if getattr(args, "out", None):
+            check_out(args.out)
         return COMMANDS[args.command](args) or 0
     except (FileNotFoundError, ValueError) as e:  # bad input: one clear line, no traceback
         print(f"fmapping {args.command}: error: {e}", file=sys.stderr)
         return 2
     except BrokenPipeError:  # output piped into e.g. `head`
         return 0
+    except OSError as e:
+        if e.filename is None:  # not about a path the user gave: a real failure, keep the traceback
+            raise
+        print(f"fmapping {args.command}: error: {e.filename}: {e.strerror or e}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"fmapping {args.command}: interrupted", file=sys.stderr)
         return 130

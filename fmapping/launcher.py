@@ -44,7 +44,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import yaml
 
@@ -71,6 +71,71 @@ class LauncherOptions:
     start_timeout: float = 120.0
     grace: float = 15.0  # seconds between SIGINT and SIGKILL on shutdown
     extra: dict = field(default_factory=dict)
+
+
+def _mapper_defaults():
+    from fmapping.mapper import MapperConfig
+
+    return MapperConfig()
+
+
+def _tracker_defaults():
+    from fmapping.tracking.frontend import TrackerConfig
+
+    return TrackerConfig()
+
+
+@dataclass
+class UpConfig:
+    """Every key an ``fmapping up`` config may set, by section (``fmapping config dump up`` prints
+    the defaults; :func:`split_config` reads such a file). The sections are built on first use so
+    that importing the launcher does not import torch."""
+    mapper: Any = field(default_factory=_mapper_defaults)  # fmapping.mapper.MapperConfig
+    tracker: Any = field(default_factory=_tracker_defaults)  # fmapping.tracking.frontend.TrackerConfig
+    launcher: LauncherOptions = field(default_factory=LauncherOptions)
+
+
+def up_config_dict(cfg: UpConfig) -> dict:
+    """``cfg`` as the sections of an ``up`` config file (``launcher.extra`` is internal, not a key)."""
+    from fmapping.config import to_dict
+
+    d = to_dict(cfg)
+    d["launcher"].pop("extra", None)
+    return d
+
+
+def run_info(data: Path, poses: str, mapper_cfg: Optional[Path], tracker_cfg: Optional[Path],
+             opts: LauncherOptions) -> dict:
+    """What the launcher adds to the mapper's OUT/stats.json, as ``fmapping map`` records them: the
+    dataset (intrinsics, depth scale, as ``io play`` opens it) and the config every service runs with."""
+    from fmapping.config import load_config
+    from fmapping.datasets import open_dataset
+
+    resolved = UpConfig(mapper=load_config(_mapper_defaults(), mapper_cfg),
+                        tracker=load_config(_tracker_defaults(), tracker_cfg), launcher=opts)
+    return {"dataset": open_dataset(data).describe(), "poses": poses, "config": up_config_dict(resolved)}
+
+
+def add_run_info(out: Path, info: dict, since: float) -> bool:
+    """Merge ``info`` into OUT/stats.json when the mapper wrote it in this run (modified at or after
+    ``since``, a ``time.time()``; a file left by an earlier run in OUT is not touched). False when
+    there is none."""
+    from fmapping.pipeline import json_default
+
+    path = out / "stats.json"
+    try:
+        if path.stat().st_mtime < since - 2.0:  # 2 s: file systems with coarse timestamps
+            return False
+        stats = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    if not isinstance(stats, dict):
+        return False
+    stats.update(info)
+    tmp = path.with_name(".stats.json.up.tmp")
+    tmp.write_text(json.dumps(stats, indent=1, default=json_default))
+    os.replace(tmp, path)
+    return True
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -339,6 +404,8 @@ def run_up(args) -> int:
         raise ValueError(f"launcher.tracker_frontend must be 'mono' or 'map', got {opts.tracker_frontend!r}")
     mono = poses == "tracker" and opts.tracker_frontend == "mono"
     mapper_cfg = with_scene_box(mapper_cfg, data, out)
+    info = run_info(data, poses, mapper_cfg, tracker_cfg, opts)  # errors in data or configs: before any process
+    started = time.time()
     mapper_argv = py + ["services.mapper", "--poses", poses, "--out", str(out)] + net() + threads
     if poses == "tracker" and not mono:
         mapper_argv += ["--unposed-init", "yes"]  # the map tracker tracks only once the mapper has a map
@@ -391,6 +458,7 @@ def run_up(args) -> int:
         return 130
     finally:
         _stop_all(procs, opts.grace, first=("play", "tracker", "mapper", "record", "view"))
+        add_run_info(out, info, since=started)  # the mapper has exited: its stats.json is final
         for p in procs.values():
             p.close()
         for sig, h in old_handlers.items():
