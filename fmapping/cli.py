@@ -28,7 +28,8 @@ from fmapping.runtime import retain_freed_memory
 
 def _add_data_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", required=True, help="dataset folder (TUM, Replica, 7-Scenes, NeRF transforms.json, fmapping synth)")
-    p.add_argument("--camera", default=None, help="override intrinsics: fx,fy,cx,cy[,k1,k2,p1,p2[,k3]] (default: the dataset's own, e.g. its calib.txt)")
+    p.add_argument("--camera", default=None, help="override intrinsics: fx,fy,cx,cy[,k1,k2,p1,p2[,k3]] "
+                                                  "(default: the dataset's own, e.g. its calib.txt)")
     p.add_argument("--max-frames", type=int, default=None, help="use only the first N frames (default: all)")
 
 
@@ -42,7 +43,7 @@ def _size(text: str) -> tuple[int, int]:
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="fmapping", description="Factorized neural field mapping for dense RGB SLAM.")
-    ap.add_argument("--version", action="version", version=f"%(prog)s {version()}")
+    ap.add_argument("--version", action=_Version, help="print the version and exit")
     sub = ap.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("synth", help="generate a synthetic indoor scene in TUM layout with GT mesh and clouds")
@@ -139,6 +140,17 @@ def _show_defaults(parser: argparse.ArgumentParser) -> None:
         if isinstance(action, argparse._SubParsersAction):
             for sp in action.choices.values():
                 _show_defaults(sp)
+
+
+class _Version(argparse.Action):
+    """``--version``, looked up only when asked for (the package metadata scan costs ~0.1 s)."""
+
+    def __init__(self, option_strings, dest, help=None):
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        sys.stdout.write(f"{parser.prog} {version()}\n")
+        parser.exit()
 
 
 def version() -> str:
