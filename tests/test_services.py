@@ -802,6 +802,13 @@ def test_fmapping_up_end_to_end(scene, tmp_path):
     ds = open_dataset(scene)
     np.testing.assert_allclose(c2w_rec, np.stack([ds[i].c2w for i in range(len(ds))]), atol=1e-6)
     assert (out / "run.rrd").stat().st_size > 1000
+    # stats.json: the mapper's own record, plus the intrinsics and the config the services ran with
+    import json
+
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["final"] is True and stats["dataset"]["camera"] == ds.camera.to_dict()
+    assert stats["config"]["mapper"]["init_iters_per_round"] == 40 and stats["config"]["launcher"]["threads"] == 1
+    assert stats["config"]["tracker"]["num_points"] > 0  # the defaults of the sections the file left out
     # the launcher hands the mapper the scene's box (the init frames' frusta would miss most of the room)
     b = ds.meta["scene"]["bbox"]
     box = np.asarray(yaml.safe_load((out / "config" / "mapper.yaml").read_text())["bbox"])
