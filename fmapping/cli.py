@@ -51,6 +51,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed of the room layout and the camera path")
     p.add_argument("--frames", type=int, default=200, help="number of frames")
     p.add_argument("--size", type=_size, default=(320, 240), help="image size WxH (default: 320x240)")
+    p.add_argument("--variety", default="default", choices=["default", "wide"],
+                   help="default: the standard close-up, strongly textured room; wide: the seed also draws "
+                        "texture scale/contrast, low-texture and striped surfaces, larger rooms, thin structures, "
+                        "and exposure/noise/blur/JPEG on the colour frames (default: %(default)s)")
 
     p = sub.add_parser("info", help="describe a dataset: format, frames, intrinsics, depth scale, GT")
     _add_data_args(p)
@@ -225,7 +229,7 @@ def _print_json(d: dict) -> None:
 def cmd_synth(a) -> int:
     from fmapping.synthetic import generate_scene
 
-    info = generate_scene(a.out, seed=a.seed, frames=a.frames, size=a.size)
+    info = generate_scene(a.out, seed=a.seed, frames=a.frames, size=a.size, variety=a.variety)
     _print_json(info)
     return 0
 

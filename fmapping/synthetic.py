@@ -16,6 +16,14 @@ Conventions (on top of :mod:`fmapping.geometry`):
   average of ``supersample ** 2`` sub-pixel rays; depth is the camera-frame ``z``
   of the centre ray's hit (exact up to float rounding).
 * Timestamps are ``i / 30`` s; depth PNGs hold ``round(depth * 5000)`` (0 invalid).
+
+Varieties: ``"default"`` is the close-up, strongly textured room above (unchanged for
+existing seeds). ``"wide"`` lets the seed also draw a :class:`Style`: texture scale and
+contrast, near-uniform and striped surfaces, larger rooms and camera distances, thin
+poles and panels, rotated furniture, and camera effects on the written colour frames
+only (smooth per-frame gain and offset per channel, motion blur, sensor noise, JPEG).
+Depth, poses, GT mesh and clouds stay exact; the drawn parameters go to
+``scene.json["variety"]`` for reports (nothing in the pipeline reads them).
 """
 from __future__ import annotations
 
@@ -23,9 +31,9 @@ import json
 import math
 import shutil
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -47,6 +55,9 @@ _N_SINES = 6
 _LIGHT = np.array([0.35, -0.5, 0.8]) / np.linalg.norm([0.35, -0.5, 0.8])
 
 PATTERNS = ("checker", "planks", "blobs", "tiles")
+# PATTERNS plus those only the wide variety assigns; appended, so that the default's indices keep their meaning
+_ALL_PATTERNS = PATTERNS + ("stripes",)
+VARIETIES = ("default", "wide")
 
 # full sizes (x, y, z) ranges in metres for each furniture kind
 _KIND_SIZES = {
@@ -54,7 +65,90 @@ _KIND_SIZES = {
     "cabinet": ((0.4, 1.0), (0.35, 0.6), (0.8, 1.2)),
     "shelf": ((0.6, 1.0), (0.3, 0.45), (1.6, 2.1)),
     "small": ((0.2, 0.45), (0.2, 0.45), (0.3, 0.55)),
+    # thin structures (wide variety only): a pole and an upright board
+    "pole": ((0.03, 0.07), (0.03, 0.07), (1.5, 2.3)),
+    "panel": ((0.5, 1.1), (0.018, 0.03), (0.9, 1.9)),
 }
+_THIN_KINDS = ("pole", "panel")
+
+
+@dataclass(frozen=True)
+class _Ranges:
+    """Uniform ranges of the layout draws."""
+
+    room: tuple  # ((x lo, x hi), (y lo, y hi), (z lo, z hi)) full room sizes, m
+    loop_radius: tuple  # loop radii as a fraction of the room sizes
+    height: tuple  # loop height, m
+    look_yaw: tuple  # yaw offset of the view from facing outwards, rad
+    pitch: tuple  # mean view pitch, rad (negative = down)
+
+
+_DEFAULT_RANGES = _Ranges(((4.0, 6.0), (3.5, 5.0), (2.5, 3.0)), (0.16, 0.2), (1.3, 1.6), (0.8, 1.25), (-0.45, -0.3))
+# larger rooms; views turned inwards (yaw offset > pi/2) and more level views see across the room
+_WIDE_RANGES = _Ranges(((4.0, 8.0), (3.5, 6.0), (2.5, 3.0)), (0.12, 0.22), (1.2, 1.7), (0.6, 2.6), (-0.45, -0.1))
+
+
+@dataclass(frozen=True)
+class Style:
+    """What the seed draws for a ``"wide"`` scene on top of the layout (the default room has none).
+
+    Texture lengths are multiplied by ``texture_scale`` and amplitudes by ``contrast``
+    (both jittered per surface); each surface is near-uniform with ``low_texture_prob``
+    or striped with ``stripe_prob``. Camera effects act on the written RGB only:
+    ``written = gain * blur(clean) + offset + noise`` per channel, in 8-bit units, with
+    ``log gain = exposure_amp * sin(2 pi i / exposure_period + p_0) + white_balance_amp *
+    sin(2 pi i / (0.7 exposure_period) + p_{1+c})`` and ``offset = offset_amp_dn * sin(2 pi i /
+    exposure_period + p_{4+c})`` at frame i and channel c (p = ``exposure_phase``); the blur
+    is a line ``blur_exposure`` times the image motion to the neighbouring frame long;
+    ``jpeg_quality`` 0 writes PNG.
+    """
+
+    texture_scale: float
+    contrast: float
+    low_texture_prob: float
+    stripe_prob: float
+    striped_floor: bool
+    free_yaw_prob: float  # chance that a box gets a free yaw instead of 0 or 90 deg
+    poles: int
+    panels: int
+    exposure_amp: float
+    white_balance_amp: float
+    offset_amp_dn: float
+    exposure_period: float  # frames
+    exposure_phase: tuple  # 7 phases (rad): exposure, white balance (3), offset (3)
+    noise_sigma_dn: float
+    blur_exposure: float  # fraction of the frame interval the shutter is open
+    jpeg_quality: int
+
+
+def draw_style(seed: int) -> Style:
+    """The wide-variety :class:`Style` for ``seed`` (its own random stream: the layout draws are
+    independent of it)."""
+    rng = np.random.default_rng([int(seed), 7005])
+
+    def maybe(p: float, lo: float, hi: float) -> float:
+        on = rng.random() < p
+        value = float(rng.uniform(lo, hi))  # drawn either way: later draws do not depend on `on`
+        return value if on else 0.0
+
+    return Style(
+        texture_scale=float(np.exp(rng.uniform(np.log(0.7), np.log(4.0)))),
+        contrast=float(np.exp(rng.uniform(np.log(0.2), np.log(1.2)))),
+        low_texture_prob=maybe(0.6, 0.15, 0.5),
+        stripe_prob=maybe(0.5, 0.05, 0.25),
+        striped_floor=bool(rng.random() < 0.4),
+        free_yaw_prob=float(rng.choice([0.0, 0.5, 0.9])),
+        poles=int(rng.integers(0, 4)),
+        panels=int(rng.integers(0, 3)),
+        exposure_amp=maybe(0.75, 0.05, 0.25),
+        white_balance_amp=maybe(0.6, 0.02, 0.08),
+        offset_amp_dn=maybe(0.5, 2.0, 10.0),
+        exposure_period=float(rng.uniform(60, 300)),
+        exposure_phase=tuple(float(x) for x in rng.uniform(0, 2 * np.pi, 7)),
+        noise_sigma_dn=maybe(0.7, 0.5, 3.0),
+        blur_exposure=maybe(0.5, 0.15, 0.5),
+        jpeg_quality=int(round(maybe(0.5, 60, 95))),
+    )
 
 
 # ---------------------------------------------------------------------------- scene
@@ -166,6 +260,8 @@ class Scene:
     texture: Texture
     path: LoopPath
     rects: list = field(default_factory=list)  # list[Rect], index == surface id
+    style: Optional[Style] = None  # wide variety only
+    surface_styles: list = field(default_factory=list)  # wide variety: per-surface draws (dicts)
 
     @property
     def n_surfaces(self) -> int:
@@ -269,17 +365,20 @@ def _separation(a: Box, b: Box) -> float:
     return float(best)
 
 
-def _place_boxes(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray, path: LoopPath) -> list:
+def _place_boxes(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray, path: LoopPath,
+                 extra_kinds: Sequence[str] = (), free_yaw_prob: float = 0.5) -> list:
     loop_xy = path.positions(np.linspace(0, 2 * np.pi, 1440, endpoint=False))[:, :2]
     kinds = ["table", "cabinet", "shelf", "small"]
     kinds += list(rng.choice(["table", "cabinet", "small", "cabinet"], int(rng.integers(0, 4))))
+    kinds += list(extra_kinds)
     boxes: list = []
     for kind in kinds:
         size = np.array([rng.uniform(*r) for r in _KIND_SIZES[kind]])
         placed = None
         for _shrink in range(6):
             for _ in range(300):
-                yaw = float(rng.choice([0.0, np.pi / 2])) if rng.random() < 0.5 else float(rng.uniform(-np.pi / 4, np.pi / 4))
+                yaw = (float(rng.choice([0.0, np.pi / 2])) if rng.random() < 1.0 - free_yaw_prob
+                       else float(rng.uniform(-np.pi / 4, np.pi / 4)))
                 center = np.array([rng.uniform(lo[0], hi[0]), rng.uniform(lo[1], hi[1]), size[2] / 2])
                 cand = Box(kind, center, size / 2, yaw)
                 fp = cand.footprint()
@@ -301,27 +400,72 @@ def _place_boxes(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray, path:
     return boxes
 
 
-def make_scene(seed: int = 0) -> Scene:
-    """The procedural room for ``seed``: sizes, furniture, textures and camera loop."""
+def _check_variety(variety: str) -> str:
+    if variety not in VARIETIES:
+        raise ValueError(f"variety must be one of {VARIETIES}, got {variety!r}")
+    return variety
+
+
+def _style_texture(tex: Texture, style: Style, rects: list, rng: np.random.Generator) -> tuple[Texture, list]:
+    """``tex`` rescaled and re-weighted per surface as ``style`` asks; also the per-surface records."""
+    s = len(rects)
+    scale = style.texture_scale * np.exp(rng.uniform(-0.35, 0.35, s))
+    contrast = style.contrast * np.exp(rng.uniform(-0.3, 0.3, s))
+    striped = rng.random(s) < style.stripe_prob
+    striped[0] = style.striped_floor
+    low = (rng.random(s) < style.low_texture_prob) & ~striped
+    low_level = rng.uniform(0.03, 0.08, s)
+    # amplitude multipliers of the (sines, noise, pattern) fields
+    mult = np.repeat(contrast[:, None], 3, 1)
+    mult[low] = low_level[low, None]
+    # stripes dominate: the other fields stay faint, so that the surface is close to 1-D
+    mult[striped] = np.array([0.1, 0.15, 1.6])
+    pattern = tex.pattern.copy()
+    pattern[striped] = _ALL_PATTERNS.index("stripes")
+    out = replace(tex, sin_k=tex.sin_k / scale[:, None, None], sin_amp=tex.sin_amp * mult[:, :1, None],
+                  noise_cell=tex.noise_cell * scale[:, None], noise_amp=tex.noise_amp * mult[:, 1:2, None],
+                  pattern=pattern, pattern_scale=tex.pattern_scale * scale,
+                  pattern_amp=tex.pattern_amp * mult[:, 2:])
+    records = [{"sid": r.sid, "name": r.name,
+                "kind": "striped" if striped[r.sid] else "low_texture" if low[r.sid] else "textured",
+                "pattern": _ALL_PATTERNS[int(pattern[r.sid])], "scale": float(scale[r.sid]),
+                "amplitude": [float(x) for x in mult[r.sid]]} for r in rects]
+    return out, records
+
+
+def make_scene(seed: int = 0, variety: str = "default") -> Scene:
+    """The procedural room for ``seed``: sizes, furniture, textures and camera loop.
+
+    ``variety="wide"`` also draws a :class:`Style` (see the module docstring).
+    """
+    style = draw_style(seed) if _check_variety(variety) == "wide" else None
+    ranges = _DEFAULT_RANGES if style is None else _WIDE_RANGES
     rng = np.random.default_rng([int(seed), 7001])
-    dims = np.array([rng.uniform(4.0, 6.0), rng.uniform(3.5, 5.0), rng.uniform(2.5, 3.0)])
+    dims = np.array([rng.uniform(*r) for r in ranges.room])
     lo = np.array([-dims[0] / 2, -dims[1] / 2, 0.0])
     hi = np.array([dims[0] / 2, dims[1] / 2, dims[2]])
     path = LoopPath(
         center=rng.uniform(-0.1, 0.1, 2),
-        radii=np.array([rng.uniform(0.16, 0.2) * dims[0], rng.uniform(0.16, 0.2) * dims[1]]),
-        height=float(rng.uniform(1.3, 1.6)),
+        radii=np.array([rng.uniform(*ranges.loop_radius) * dims[0], rng.uniform(*ranges.loop_radius) * dims[1]]),
+        height=float(rng.uniform(*ranges.height)),
         height_amp=0.08,
         direction=int(rng.choice([-1, 1])),
         wobble=float(rng.uniform(0.0, 0.08)),
         phase=float(rng.uniform(0, 2 * np.pi)),
     )
-    boxes = _place_boxes(rng, lo, hi, path)
+    if style is None:
+        boxes = _place_boxes(rng, lo, hi, path)
+    else:
+        thin = ["pole"] * style.poles + ["panel"] * style.panels
+        boxes = _place_boxes(rng, lo, hi, path, thin, style.free_yaw_prob)
     rects = _room_rects(lo, hi)
     for b, box in enumerate(boxes):
         rects += _box_rects(box, b)
     texture = _make_texture(rng, rects)
-    return Scene(int(seed), lo, hi, boxes, texture, path, rects)
+    if style is None:
+        return Scene(int(seed), lo, hi, boxes, texture, path, rects)
+    texture, records = _style_texture(texture, style, rects, np.random.default_rng([int(seed), 7006]))
+    return Scene(int(seed), lo, hi, boxes, texture, path, rects, style, records)
 
 
 # -------------------------------------------------------------------------- texture
@@ -363,7 +507,7 @@ def _surface_texture(tex: Texture, s: int, u: np.ndarray, v: np.ndarray) -> np.n
         inv_cell = f32(1.0 / tex.noise_cell[s, o])
         ox, oy = (f32(x) for x in tex.noise_off[s, o])
         fields.append(_value_noise(tex.table, u32 * inv_cell + ox, v32 * inv_cell + oy) - f32(0.5))
-    kind = PATTERNS[int(tex.pattern[s])]
+    kind = _ALL_PATTERNS[int(tex.pattern[s])]
     sc = tex.pattern_scale[s]
     us, vs = u32 * f32(1.0 / sc), v32 * f32(1.0 / sc)
     if kind == "checker":
@@ -377,6 +521,9 @@ def _surface_texture(tex: Texture, s: int, u: np.ndarray, v: np.ndarray) -> np.n
         tint = f32(2) * tex.table.ravel()[idx] - f32(1)
         dv = np.abs(vs - np.round(vs)) * f32(sc / 0.008)  # distance to the joint in 8 mm units
         pat = f32(0.7) * tint - f32(0.9) * np.exp(-dv * dv)
+    elif kind == "stripes":  # bars one pattern scale wide, varying along e1 or e2 only
+        w = us if tex.pattern_off[s, 0] % 2 else vs
+        pat = np.tanh(f32(4.0) * np.sin(f32(np.pi) * w))
     elif kind == "blobs":
         n = _value_noise(tex.table, us + f32(tex.pattern_off[s, 0]), vs + f32(tex.pattern_off[s, 1]))
         pat = np.tanh(f32(10.0) * (n - f32(0.5)))
@@ -633,11 +780,12 @@ def make_trajectory(scene: Scene, frames: int, seed: int = 0) -> np.ndarray:
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}")
     rng = np.random.default_rng([int(seed), 7002])
+    ranges = _DEFAULT_RANGES if scene.style is None else _WIDE_RANGES
     look = {
-        "yaw_offset": float(rng.uniform(0.8, 1.25)),  # 0 = facing outwards, pi/2 = along the loop
+        "yaw_offset": float(rng.uniform(*ranges.look_yaw)),  # 0 = facing outwards, pi/2 = along the loop
         "yaw_amp": float(rng.uniform(0.05, 0.12)),
         "yaw_phase": float(rng.uniform(0, 2 * np.pi)),
-        "pitch": float(rng.uniform(-0.45, -0.3)),
+        "pitch": float(rng.uniform(*ranges.pitch)),
         "pitch_amp": 0.06,
         "pitch_phase": float(rng.uniform(0, 2 * np.pi)),
         "roll_amp": 0.03,
@@ -746,7 +894,110 @@ def visible_mask(camera: PinholeCamera, c2w: np.ndarray, depth: np.ndarray, pts:
     return _visible_columns(camera, np.asarray(c2w, np.float64), np.asarray(depth), cols, tol)
 
 
+# --------------------------------------------------------------------- camera effects
+def exposure_curve(style: Style, frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame gain (N, 3) and offset (N, 3, 8-bit units) of the written colour (see :class:`Style`),
+    rounded as recorded in scene.json so that the record reproduces the images."""
+    i = np.arange(int(frames), dtype=np.float64)[:, None]
+    ph = np.asarray(style.exposure_phase, np.float64)
+    w = 2 * np.pi / style.exposure_period
+    log_gain = style.exposure_amp * np.sin(w * i + ph[0]) + style.white_balance_amp * np.sin(w / 0.7 * i + ph[1:4])
+    offset = style.offset_amp_dn * np.sin(w * i + ph[4:7])
+    return np.round(np.exp(log_gain), 5), np.round(offset, 3) + 0.0  # + 0.0: no -0.0 in the record
+
+
+def image_motion(camera: PinholeCamera, c2w: np.ndarray, c2w_other: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """Mean displacement (2,) in pixels of the points seen at ``c2w`` (z-depth ``depth``) when they
+    are seen from ``c2w_other`` instead (on a coarse pixel grid)."""
+    h, w = depth.shape
+    step = max(1, min(h, w) // 8)
+    v, u = np.mgrid[step // 2:h:step, step // 2:w:step]
+    z = depth[v, u].astype(np.float64).ravel()
+    u, v = u.ravel().astype(np.float64), v.ravel().astype(np.float64)
+    pc = np.stack([(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z], -1)
+    world = pc @ c2w[:3, :3].T + c2w[:3, 3]
+    q = (world - c2w_other[:3, 3]) @ c2w_other[:3, :3]
+    ok = (z > 0) & (q[:, 2] > 1e-3)
+    if not ok.any():
+        return np.zeros(2)
+    du = q[ok, 0] / q[ok, 2] * camera.fx + camera.cx - u[ok]
+    dv = q[ok, 1] / q[ok, 2] * camera.fy + camera.cy - v[ok]
+    return np.array([du.mean(), dv.mean()])
+
+
+def _line_kernel(vec: np.ndarray) -> Optional[np.ndarray]:
+    """Normalised kernel of a line segment ``vec`` (dx, dy) pixels long centred on the middle pixel
+    (centred: the blurred image does not move against the GT pose); None below half a pixel."""
+    length = float(np.hypot(vec[0], vec[1]))
+    if length < 0.5:
+        return None
+    r = int(math.ceil(length / 2)) + 1
+    k = np.zeros((2 * r + 1, 2 * r + 1))
+    for t in np.linspace(-0.5, 0.5, int(math.ceil(4 * length)) + 1):
+        x, y = r + t * vec[0], r + t * vec[1]
+        x0, y0 = int(math.floor(x)), int(math.floor(y))
+        fx, fy = x - x0, y - y0
+        k[y0:y0 + 2, x0:x0 + 2] += np.array([[(1 - fx) * (1 - fy), fx * (1 - fy)], [(1 - fx) * fy, fx * fy]])
+    return k / k.sum()
+
+
+def apply_camera_effects(rgb: np.ndarray, gain: np.ndarray, offset: np.ndarray, blur: np.ndarray,
+                         noise_sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """``clip(round(gain * blur(rgb) + offset + noise))`` per channel, uint8 (H, W, 3) in and out.
+
+    ``blur`` is the motion-blur segment (dx, dy) in pixels, ``noise_sigma`` the standard
+    deviation of the Gaussian sensor noise in 8-bit units.
+    """
+    import cv2
+
+    img = rgb.astype(np.float32)
+    kernel = _line_kernel(np.asarray(blur, np.float64))
+    if kernel is not None:  # symmetric kernel: correlation = convolution
+        img = cv2.filter2D(img, -1, kernel.astype(np.float32), borderType=cv2.BORDER_REFLECT)
+    img = img * np.asarray(gain, np.float32) + np.asarray(offset, np.float32)
+    if noise_sigma > 0:
+        img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(noise_sigma)
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+def _variety_record(scene: Scene, gains: np.ndarray, offsets: np.ndarray, blur: np.ndarray, rgb_ext: str) -> dict:
+    """What a wide scene drew, for benchmark reports (scene.json["variety"])."""
+    st = scene.style
+    exposed = [rec for rec, r in zip(scene.surface_styles, scene.rects) if r.exposed]
+    kinds = {rec["kind"] for rec in exposed}
+    # yaw off the 0 / 90 deg grid by more than a degree
+    rotated = [b for b in scene.boxes if abs(math.remainder(b.yaw, np.pi / 2)) > math.radians(1.0)]
+    features = {
+        "striped": "striped" in kinds,
+        "low_texture": "low_texture" in kinds,
+        "rotated_box": bool(rotated),
+        "thin_structure": any(b.kind in _THIN_KINDS for b in scene.boxes),
+        "jpeg": st.jpeg_quality > 0,
+        "exposure_change": max(st.exposure_amp, st.white_balance_amp, st.offset_amp_dn) > 0,
+        "noise": st.noise_sigma_dn > 0,
+        "motion_blur": st.blur_exposure > 0,
+    }
+    return {
+        "name": "wide",
+        "features": features,
+        "style": asdict(st),
+        "rgb_format": rgb_ext,
+        "room_size": (scene.room_max - scene.room_min).tolist(),
+        "rotated_boxes": len(rotated),
+        "thin_structures": sum(b.kind in _THIN_KINDS for b in scene.boxes),
+        "surfaces": scene.surface_styles,
+        "per_frame": {"gain": gains.tolist(), "offset_dn": offsets.tolist(), "blur_px": blur.tolist()},
+    }
+
+
 # ----------------------------------------------------------------------------- files
+def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
+    import cv2
+
+    if not cv2.imwrite(str(path), np.ascontiguousarray(img[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, int(quality)]):
+        raise OSError(f"could not write {path}")
+
+
 def _write_png(path: Path, img: np.ndarray) -> None:
     import cv2
 
@@ -775,12 +1026,15 @@ def _clean_previous(out: Path) -> None:
 
 
 def generate_scene(out, seed: int = 0, frames: int = 200, size: Sequence[int] = (320, 240),
-                   supersample: int = 2, max_cloud_points: int = 500_000, mesh_spacing: float = 0.05) -> dict:
+                   supersample: int = 2, max_cloud_points: int = 500_000, mesh_spacing: float = 0.05,
+                   variety: str = "default") -> dict:
     """Render ``frames`` RGB-D frames of the scene for ``seed`` into ``out`` (TUM layout) with GT.
 
     Writes rgb/, depth/, rgb.txt, depth.txt, groundtruth.txt, calib.txt, scene.json,
     gt_mesh.ply, gt_cloud.ply and gt_visible_cloud.ply; returns a summary dict
-    (paths, timing, frames, camera, bbox).
+    (paths, timing, frames, camera, bbox). ``variety="wide"`` draws a :class:`Style` too:
+    the colour frames get its camera effects (and are JPEG files when it says so), and
+    scene.json records it under ``"variety"``.
     """
     from fmapping.ply import write_ply
     from fmapping.trajectory import write_tum_trajectory
@@ -796,11 +1050,16 @@ def generate_scene(out, seed: int = 0, frames: int = 200, size: Sequence[int] = 
     (out / "rgb").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
 
-    scene = make_scene(seed)
+    scene = make_scene(seed, _check_variety(variety))
+    style = scene.style
     c2w = make_trajectory(scene, frames, seed)
     step_t, step_r = trajectory_steps(c2w) if len(c2w) > 1 else (np.zeros(1), np.zeros(1))
     ts = np.arange(len(c2w)) / FPS
     names = [_ts_name(t) for t in ts]
+    rgb_ext = "jpg" if style is not None and style.jpeg_quality > 0 else "png"
+    if style is not None:
+        gains, offsets = exposure_curve(style, len(c2w))
+        blur = np.zeros((len(c2w), 2))
 
     t0 = time.perf_counter()
     cloud, cloud_ids, cloud_col = gt_cloud(scene, max_points=max_cloud_points, seed=seed)
@@ -821,15 +1080,25 @@ def generate_scene(out, seed: int = 0, frames: int = 200, size: Sequence[int] = 
         if raw.max() > 65535:
             raise AssertionError(f"depth {depth.max():.2f} m does not fit 16-bit PNG at factor {DEPTH_FACTOR}")
         max_depth = max(max_depth, float(depth.max()))
-        _write_png(out / "rgb" / f"{names[i]}.png", rgb)
+        if style is not None:
+            other = c2w[i - 1] if i > 0 else c2w[min(1, len(c2w) - 1)]
+            blur[i] = np.round(style.blur_exposure * image_motion(camera, pose, other, depth), 3)
+            rgb = apply_camera_effects(rgb, gains[i], offsets[i], blur[i], style.noise_sigma_dn,
+                                       np.random.default_rng([int(seed), 7007, i]))
+        if rgb_ext == "jpg":
+            _write_jpeg(out / "rgb" / f"{names[i]}.jpg", rgb, style.jpeg_quality)
+        else:
+            _write_png(out / "rgb" / f"{names[i]}.png", rgb)
         _write_png(out / "depth" / f"{names[i]}.png", raw.astype(np.uint16))
         t_render += t1 - t0
         t_vis += t2 - t1
         t_io += time.perf_counter() - t2
 
     header = f"# fmapping.synthetic seed {seed}, {len(ts)} frames {camera.width}x{camera.height}\n"
+    if style is not None:
+        header = header[:-1] + ", variety wide\n"
     (out / "rgb.txt").write_text("# color images\n" + header + "# timestamp filename\n"
-                                 + "".join(f"{n} rgb/{n}.png\n" for n in names))
+                                 + "".join(f"{n} rgb/{n}.{rgb_ext}\n" for n in names))
     (out / "depth.txt").write_text(f"# depth maps (uint16, {DEPTH_FACTOR:g} per metre, 0 = invalid)\n" + header
                                    + "# timestamp filename\n" + "".join(f"{n} depth/{n}.png\n" for n in names))
     write_tum_trajectory(out / "groundtruth.txt", ts, c2w)
@@ -863,6 +1132,8 @@ def generate_scene(out, seed: int = 0, frames: int = 200, size: Sequence[int] = 
         "gt_visible_points": int(seen.sum()),
         "supersample": int(supersample),
     }
+    if style is not None:
+        meta["variety"] = _variety_record(scene, gains, offsets, blur, rgb_ext)
     (out / "scene.json").write_text(json.dumps(meta, indent=2))
     total = time.perf_counter() - t_start
     paths = {k: str(out / v) for k, v in {
@@ -873,6 +1144,7 @@ def generate_scene(out, seed: int = 0, frames: int = 200, size: Sequence[int] = 
         "paths": paths,
         "frames": int(len(ts)),
         "seed": int(seed),
+        "variety": variety,
         "camera": camera.to_dict(),
         "bbox": meta["bbox"],
         "boxes": len(scene.boxes),

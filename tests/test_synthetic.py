@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -333,3 +334,181 @@ def test_cli_synth(tmp_path, capsys):
     info = json.loads(capsys.readouterr().out)
     assert info["frames"] == 3 and info["camera"]["width"] == 24 and "total_s" in info["timing"]
     assert (tmp_path / "gt_visible_cloud.ply").is_file()
+
+
+# ------------------------------------------------------------------------------ wide variety
+WIDE_SEED, WIDE_FRAMES, WIDE_SIZE = 2, 12, (160, 120)  # seed 2: JPEG frames, poles seen in frame 9
+
+
+@pytest.fixture(scope="module")
+def wide_dir(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("synth_wide")
+    S.generate_scene(out, seed=WIDE_SEED, frames=WIDE_FRAMES, size=WIDE_SIZE, max_cloud_points=60_000,
+                     variety="wide")
+    return out
+
+
+def test_default_variety_is_unchanged(tmp_path):
+    """The default room must stay bit-identical: the hash below was computed with the generator
+    as it was before the wide variety existed (commit 1e570e1), not with the current code.
+    (It also depends on OpenCV's PNG encoder; a new encoder version would change it.)"""
+    import hashlib
+
+    S.generate_scene(tmp_path, seed=0, frames=4, size=(40, 30), max_cloud_points=20_000)
+    h = hashlib.sha256()
+    for p in sorted(q for q in tmp_path.rglob("*") if q.is_file()):
+        h.update(p.relative_to(tmp_path).as_posix().encode() + b"\n" + p.read_bytes())
+    assert h.hexdigest() == "345cdbc4bc6950c71d0de020f09eb3829cfed50228b4a4304faa85aa5cd57bdb"
+    assert "variety" not in json.loads((tmp_path / "scene.json").read_text())
+    with pytest.raises(ValueError, match="variety"):
+        S.make_scene(0, "narrow")
+
+
+def test_wide_seeds_draw_different_styles_and_every_feature(tmp_path):
+    metas = []
+    for seed in range(5):
+        out = tmp_path / str(seed)
+        S.generate_scene(out, seed=seed, frames=2, size=(40, 30), max_cloud_points=5_000, variety="wide")
+        metas.append(json.loads((out / "scene.json").read_text()))
+    styles = [m["variety"]["style"] for m in metas]
+    assert all(styles[i] != styles[j] for i in range(5) for j in range(i))
+    assert len({round(s["texture_scale"], 6) for s in styles}) == 5
+    for m in metas:  # each recorded feature is backed by the recorded parameters / files
+        v, f = m["variety"], m["variety"]["features"]
+        kinds = {s["kind"] for s in v["surfaces"]}
+        assert f["striped"] == ("striped" in kinds) and f["low_texture"] == ("low_texture" in kinds)
+        off_grid = [b for b in m["boxes"] if abs(math.remainder(b["yaw_deg"], 90.0)) > 1.0]
+        assert f["rotated_box"] == bool(off_grid)
+        thin = [b for b in m["boxes"] if min(b["size"][:2]) < 0.08]
+        assert f["thin_structure"] == bool(thin) and all(b["kind"] in ("pole", "panel") for b in thin)
+        ext = {p.suffix for p in (tmp_path / str(m["seed"]) / "rgb").iterdir()}
+        assert f["jpeg"] == (v["style"]["jpeg_quality"] > 0) == (ext == {".jpg"})
+        assert len(v["per_frame"]["gain"]) == len(v["per_frame"]["offset_dn"]) == 2
+        dims = np.array(m["room"]["max"]) - np.array(m["room"]["min"])
+        assert np.all(dims >= [4.0, 3.5, 2.5]) and np.all(dims <= [8.0, 6.0, 3.0])
+    for feature in ("striped", "low_texture", "rotated_box", "thin_structure", "jpeg"):
+        assert any(m["variety"]["features"][feature] for m in metas), feature
+    # low-frequency and low-contrast textures and larger rooms than the default's occur
+    assert max(s["texture_scale"] for s in styles) > 2.0 and min(s["contrast"] for s in styles) < 0.4
+    assert any(m["room"]["max"][0] - m["room"]["min"][0] > 6.0 for m in metas)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_wide_trajectory_stays_clear(seed):
+    sc = S.make_scene(seed, "wide")
+    c2w = S.make_trajectory(sc, 300, seed)
+    pos = c2w[:, :3, 3]
+    assert np.all(pos > sc.room_min) and np.all(pos < sc.room_max)
+    pts, _, _ = S.gt_cloud(sc, max_points=40_000)
+    assert cKDTree(pts).query(pos)[0].min() >= 0.5
+    step, deg = S.trajectory_steps(c2w)
+    assert step.max() <= 0.03 and deg.max() <= 2.0
+    cam = S.camera_for_size(40, 30)
+    for pose in c2w[::100]:  # every pixel sees a surface at a plausible distance
+        depth = S.render_view(sc, cam, pose, supersample=1)[1]
+        assert depth.min() > 0.4 and depth.max() < 11.0
+
+
+def test_wide_depth_lies_on_gt_mesh(wide_dir):
+    mesh = read_ply(wide_dir / "gt_mesh.ply")
+    _, gt = read_tum_trajectory(wide_dir / "groundtruth.txt")
+    names = sorted((wide_dir / "depth").iterdir())
+    cam = S.camera_for_size(*WIDE_SIZE)
+    sc = S.make_scene(WIDE_SEED, "wide")
+    thin_ids = [6 + 6 * b + f for b, box in enumerate(sc.boxes) if box.kind in ("pole", "panel") for f in range(6)]
+    pts, on_thin = [], 0
+    for i in (0, 5, 9, 11):
+        depth = cv2.imread(str(names[i]), cv2.IMREAD_UNCHANGED).astype(np.float64) / 5000.0
+        assert depth.min() > 0.4
+        p, v, u = _backproject(cam, gt[i], depth, step=2)
+        pts.append(p)
+        on_thin += np.isin(S.render_view(sc, cam, gt[i], supersample=1, return_ids=True)[2][v, u], thin_ids).sum()
+    dist = _mesh_distance(np.concatenate(pts), mesh.points, mesh.faces)
+    assert dist.max() < 1e-3, f"max distance of back-projected depth to the GT mesh {dist.max():.2e} m"
+    assert on_thin > 0  # a thin pole is among the checked pixels
+
+
+def _smoothed_errors(written: np.ndarray, clean: np.ndarray, gain, offset) -> tuple[float, float]:
+    """Median |written - clean| and |written - (gain * clean + offset)| after a 9x9 Gaussian (which
+    removes most noise, JPEG and blur differences), over unsaturated pixels, in 8-bit units."""
+    gw = cv2.GaussianBlur(written.astype(np.float64), (9, 9), 0)
+    gc = cv2.GaussianBlur(clean.astype(np.float64), (9, 9), 0)
+    ok = (written > 3).all(-1) & (written < 252).all(-1)
+    model = gc * np.asarray(gain) + np.asarray(offset)
+    return float(np.median(np.abs(gw - gc)[ok])), float(np.median(np.abs(gw - model)[ok]))
+
+
+def test_wide_exposure_gain_and_offset_are_applied(tmp_path, wide_dir):
+    # seed 1: per-channel gains and offsets, noise, blur, PNG; the fixture: JPEG
+    S.generate_scene(tmp_path, seed=1, frames=3, size=(80, 60), max_cloud_points=5_000, variety="wide")
+    for out, seed, size, frames in ((tmp_path, 1, (80, 60), (0, 2)), (wide_dir, WIDE_SEED, WIDE_SIZE, (0, 11))):
+        meta = json.loads((out / "scene.json").read_text())
+        rec = meta["variety"]["per_frame"]
+        sc = S.make_scene(seed, "wide")
+        poses = S.make_trajectory(sc, meta["frames"], seed)
+        files = sorted((out / "rgb").iterdir())
+        cam = S.camera_for_size(*size)
+        for i in frames:
+            gain, offset = np.array(rec["gain"][i]), np.array(rec["offset_dn"][i])
+            assert np.abs(gain - 1).max() > 0.05  # these frames have a visible exposure change
+            written = cv2.imread(str(files[i]))[..., ::-1]
+            clean = S.render_view(sc, cam, poses[i])[0]
+            raw, undone = _smoothed_errors(written, clean, gain, offset)
+            assert undone < 1.5 and raw > 3 * undone, (out, i, raw, undone)
+    # smooth: consecutive frames change the gain only a little, but the gain does change
+    g = np.array(S.exposure_curve(S.draw_style(1), 300)[0])
+    assert np.abs(np.diff(np.log(g), axis=0)).max() < 0.03 and np.ptp(np.log(g), axis=0).min() > 0.1
+    assert np.ptp(g[:, 0] - g[:, 2]) > 0.02  # white balance: the channels differ
+
+
+def test_apply_camera_effects():
+    rng = np.random.default_rng(0)
+    img = rng.integers(20, 200, (60, 80, 3)).astype(np.uint8)
+    gain, offset = np.array([1.1, 0.9, 1.0]), np.array([3.0, -2.0, 0.0])
+    plain = S.apply_camera_effects(img, gain, offset, np.zeros(2), 0.0, rng)
+    ref = img.astype(np.float32) * gain.astype(np.float32) + offset.astype(np.float32)  # float32 arithmetic
+    np.testing.assert_array_equal(plain, np.clip(np.round(ref), 0, 255).astype(np.uint8))
+    flat = np.full((60, 80, 3), 100, np.uint8)
+    noisy = S.apply_camera_effects(flat, np.ones(3), np.zeros(3), np.zeros(2), 2.0, rng).astype(np.float64)
+    assert abs(noisy.std() - 2.0) < 0.1 and abs(noisy.mean() - 100) < 0.1
+    # horizontal blur of vertical bars: columns mix, rows stay identical
+    bars = np.zeros((60, 80, 3), np.uint8)
+    bars[:, ::8] = 200
+    blurred = S.apply_camera_effects(bars, np.ones(3), np.zeros(3), np.array([6.0, 0.0]), 0.0, rng).astype(np.float64)
+    assert blurred[:, 4:-4].max() < 100 and abs(blurred.mean() - bars.mean()) < 1.0
+    assert np.all(blurred == blurred[:1])
+
+
+def test_dataset_reads_a_wide_scene(wide_dir):
+    datasets = pytest.importorskip("fmapping.datasets")
+    ds = datasets.open_dataset(wide_dir)
+    assert ds.kind == "synthetic" and len(ds) == WIDE_FRAMES and ds.camera == S.camera_for_size(*WIDE_SIZE)
+    assert {p.suffix for p in (wide_dir / "rgb").iterdir()} == {".jpg"}
+    sc = S.make_scene(WIDE_SEED, "wide")
+    poses = S.make_trajectory(sc, WIDE_FRAMES, WIDE_SEED)
+    for i in (0, WIDE_FRAMES - 1):
+        fr = ds[i]
+        assert fr.rgb.shape == (WIDE_SIZE[1], WIDE_SIZE[0], 3)
+        np.testing.assert_allclose(fr.c2w, poses[i], atol=1e-8)
+        depth = S.render_view(sc, ds.camera, poses[i], supersample=1)[1]
+        assert np.abs(fr.depth - depth).max() <= 0.5 / 5000 + 1e-6
+
+
+def test_cli_synth_variety(tmp_path, capsys):
+    from fmapping.cli import main
+
+    assert main(["synth", "--out", str(tmp_path), "--seed", "3", "--frames", "2", "--size", "24x16",
+                 "--variety", "wide"]) == 0
+    assert json.loads(capsys.readouterr().out)["variety"] == "wide"
+    assert json.loads((tmp_path / "scene.json").read_text())["variety"]["name"] == "wide"
+    with pytest.raises(SystemExit):
+        main(["synth", "--out", str(tmp_path), "--variety", "narrow"])
+
+
+def test_wide_is_deterministic(tmp_path):
+    for name in ("a", "b"):  # seed 0 has noise, blur and JPEG frames
+        S.generate_scene(tmp_path / name, seed=0, frames=3, size=(40, 30), max_cloud_points=5_000, variety="wide")
+    files = sorted(p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*") if p.is_file())
+    assert any(p.suffix == ".jpg" for p in files)
+    for p in files:
+        assert (tmp_path / "a" / p).read_bytes() == (tmp_path / "b" / p).read_bytes(), p
