@@ -361,33 +361,51 @@ def run_real(threads: int, out_dir: Path) -> dict:
         print("[bench] tum_fr1_rpy", res["tum_fr1_rpy"], flush=True)
     lego_dir = data / "nerf_synthetic_lego"
     if lego_dir.is_dir():
-        ds = open_dataset(lego_dir, background=(0, 0, 0))
-        cam = ds.camera.resized(200, 200)
-        frames = [ds[i] for i in range(len(ds))]
-        imgs = [cv2.resize(f.rgb, (200, 200), interpolation=cv2.INTER_AREA) for f in frames]
-        test = list(range(0, len(frames), 8))
-        train = [i for i in range(len(frames)) if i not in test]
-        cfg = merge(MapperConfig(), {
-            "init_frames": len(train), "init_iters_per_round": 150, "optimize_init_poses": False,
-            "final_global_iters": 600, "near": 2.0, "far": 6.0, "warp_keep": 0.5, "bbox": [[-1.5] * 3, [1.5] * 3],
-            "rays_per_iter": 2048})
-        m = Mapper(cfg, cam)
-        t0 = time.perf_counter()
-        for i in train:
-            m.add_frame(imgs[i], frames[i].c2w)
-        m.finish()
-        vals, rows = [], []
-        for j, i in enumerate(test):
-            out = m.render(frames[i].c2w, cam)
-            vals.append(psnr(out["rgb"], imgs[i] / 255.0))
-            if j < 3:
-                rows.append((imgs[i], out["rgb"], out["depth_normalized"]))
-        res["lego"] = {"train_views": len(train), "test_views": len(test), "size": [200, 200],
-                       "psnr_novel_views": float(np.mean(vals)), "seconds": time.perf_counter() - t0}
-        _held_out_figure(rows, out_dir / "mapping_lego.png",
-                         f"NeRF-synthetic lego (200x200, black bg): novel-view PSNR {np.mean(vals):.2f} dB")
+        res["lego"] = run_lego(lego_dir, out_dir / "mapping_lego.png")
         print("[bench] lego", res["lego"], flush=True)
     return res
+
+
+LEGO_CONFIG = {"init_iters_per_round": 150, "optimize_init_poses": False, "final_global_iters": 600, "near": 2.0,
+               "far": 6.0, "warp_keep": 0.5, "bbox": [[-1.5] * 3, [1.5] * 3], "rays_per_iter": 2048}
+
+
+def run_lego(lego_dir: Path, png: Optional[Path], overrides: Optional[dict] = None, size: int = 200,
+             max_views: Optional[int] = None) -> dict:
+    """NeRF-synthetic lego: views resized to ``size`` x ``size`` over a black background, every 8th
+    view held out, all others fitted together (init stage over all of them + the closing refinement);
+    returns the novel-view PSNR of the held-out views and writes a picture to ``png`` (if given).
+    ``overrides`` go over :data:`LEGO_CONFIG`; ``max_views`` keeps the first views only (smoke runs).
+    Shared with ``bench/real.py``."""
+    import cv2
+
+    from fmapping.config import merge
+    from fmapping.datasets import open_dataset
+    from fmapping.mapper import Mapper, MapperConfig
+    from fmapping.metrics import psnr
+
+    ds = open_dataset(lego_dir, background=(0, 0, 0), max_frames=max_views)
+    cam = ds.camera.resized(size, size)
+    frames = [ds[i] for i in range(len(ds))]
+    imgs = [cv2.resize(f.rgb, (size, size), interpolation=cv2.INTER_AREA) for f in frames]
+    test = list(range(0, len(frames), 8))
+    train = [i for i in range(len(frames)) if i not in test]
+    cfg = merge(MapperConfig(), _merge_dicts(LEGO_CONFIG, {**(overrides or {}), "init_frames": len(train)}))
+    m = Mapper(cfg, cam)
+    t0 = time.perf_counter()
+    for i in train:
+        m.add_frame(imgs[i], frames[i].c2w)
+    m.finish()
+    vals, rows = [], []
+    for j, i in enumerate(test):
+        out = m.render(frames[i].c2w, cam)
+        vals.append(psnr(out["rgb"], imgs[i] / 255.0))
+        if j < 3:
+            rows.append((imgs[i], out["rgb"], out["depth_normalized"]))
+    if png is not None:
+        _held_out_figure(rows, png, f"NeRF-synthetic lego ({size}x{size}, black bg): novel-view PSNR {np.mean(vals):.2f} dB")
+    return {"train_views": len(train), "test_views": len(test), "size": [size, size],
+            "psnr_novel_views": float(np.mean(vals)), "seconds": time.perf_counter() - t0}
 
 
 def _merge_dicts(a: dict, b: dict) -> dict:

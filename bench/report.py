@@ -256,6 +256,24 @@ def slam_section() -> str:
                "loops closed", "compl. ratio", "acc. cm", "after Sim3: compl. ratio", "acc. cm", "compl. cm"], rows)]) + "\n"
 
 
+def real_section() -> str:
+    """The table ``bench/real.py`` stored in ``real.json`` (nothing when it has not run)."""
+    d = load("real")
+    if d is None:
+        return ""
+    st = d.get("settings", {})
+    variants = "; ".join(f"`{v}`: mapper overrides {x.get('applied') or 'none'}" for v, x in d.get("variants", {}).items())
+    rows = [[t["row"], t["variant"], t["measure"], t["value"], t["target"], t["met"]] for t in d.get("table", [])]
+    skipped = "".join(f" `{r}` skipped: {why}." for r, why in d.get("skipped", {}).items())
+    return "\n".join([
+        "### Unseen scenes (`bench/real.py` -> `real.json`, maps in `real_maps/`)\n",
+        f"Rows {', '.join(st.get('rows', []))} (7-Scenes redkitchen dev 200 / long 700 frames, synthetic seeds "
+        f"{st.get('seeds')}, TUM fr1_rpy, NeRF lego), RGB only, run {d.get('date', '')}"
+        f"{' (--quick)' if st.get('quick') else ''}; "
+        f"variants side by side in one process ({variants}). Synthetic rows: the worst seed against the target.{skipped}\n",
+        table(["row", "variant", "measure", "value", "target", "met"], rows)]) + "\n"
+
+
 def transport_section() -> str:
     d = load("transport")
     if d is None:
@@ -319,7 +337,8 @@ def build() -> str:
              "each table comes from its own run (the JSON files record when and, where they do, on which "
              "machine: the 2-core machines differ from run to run). `make bench` re-runs everything. "
              "The CPU is shared and its speed swings 3-4x: timings are min / median.\n",
-             mapping_section(), tracking_section(), slam_section(), system_section(), transport_section(),
+             mapping_section(), tracking_section(), slam_section(), real_section(), system_section(),
+             transport_section(),
              field_section()]
     pngs = sorted(p.name for p in RESULTS.glob("*.png"))
     if pngs:
