@@ -33,6 +33,20 @@ def _add_data_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-frames", type=int, default=None, help="use only the first N frames (default: all)")
 
 
+def _bbox(text: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        v = []
+    if len(v) != 6 or not all(lo < hi for lo, hi in zip(v[:3], v[3:])):
+        raise argparse.ArgumentTypeError(f"--bbox must be xmin,ymin,zmin,xmax,ymax,zmax with min < max, got {text!r}")
+    return tuple(v[:3]), tuple(v[3:])
+
+
+BBOX_HELP = ("scene box xmin,ymin,zmin,xmax,ymax,zmax in metres (world frame of the poses); default: "
+             "the mapper bounds the scene from points it triangulates, and grows the box as they spread")
+
+
 def _size(text: str) -> tuple[int, int]:
     try:
         w, h = text.lower().split("x")
@@ -69,6 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="field type (default: the config's field.kind, cp)")
     p.add_argument("--use-depth", action="store_true", help="supervise with depth when the dataset has it")
     p.add_argument("--device", default="auto", help="torch device: auto (CUDA when present, else CPU), cpu, cuda")
+    p.add_argument("--bbox", type=_bbox, default=None, help=BBOX_HELP)
 
     p = sub.add_parser("slam", help="track and map from RGB (full SLAM loop)")
     _add_data_args(p)
@@ -78,6 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="YAML overrides of the SLAM config (all keys: fmapping config dump slam; default: none)")
     p.add_argument("--use-depth", action="store_true", help="use depth when the dataset has it")
     p.add_argument("--device", default="auto", help="torch device: auto (CUDA when present, else CPU), cpu, cuda")
+    p.add_argument("--bbox", type=_bbox, default=None, help=BBOX_HELP)
     p.add_argument("--no-export", dest="export", action="store_false",
                    help="skip map.ply / mesh.ply at the end (traj.txt and stats.json are still written)")
 
@@ -106,6 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=float, default=0.0, help="playback rate (0 = as fast as consumers keep up)")
     p.add_argument("--config", default=None, help="YAML with mapper / tracker / launcher sections "
                                                   "(all keys: fmapping config dump up; default: none)")
+    p.add_argument("--bbox", type=_bbox, default=None, help=BBOX_HELP)
 
     p = sub.add_parser("demo", help="the multi-process system on the embedded synthetic default, with metrics")
     p.add_argument("--out", default="out/demo", help="output folder (the scene goes to OUT/scene)")

@@ -254,41 +254,18 @@ def demo_metrics(out: Path, scene_dir: Path) -> dict:
     return report
 
 
-def scene_box(data: Path, mapper_overrides: dict) -> Optional[list]:
-    """The mapper's bounding box for the dataset the launcher plays, as ``fmapping map`` picks it
-    (the synthetic scene's box, else the depth images when the dataset has them - used only
-    for the box - else the frusta of *all* ground-truth poses),
-    or None when the dataset gives no hint (the mapper then bounds the frusta of its init frames,
-    which misses what later frames see)."""
-    from fmapping.config import merge
-    from fmapping.datasets import open_dataset
-    from fmapping.mapper import MapperConfig
-    from fmapping.pipeline import scene_aabb
-
-    cfg = merge(MapperConfig(), mapper_overrides)
-    if cfg.bbox is not None:
-        return None
-    ds = open_dataset(data)
-    poses = [p for p in ds.gt_poses if p is not None] if ds.gt_poses else []
-    has_scene = isinstance(ds.meta, dict) and isinstance(ds.meta.get("scene"), dict)
-    if not poses and not has_scene:
-        return None
-    box = scene_aabb(ds, cfg, poses, use_depth=True)  # depth, when present, only bounds the box here
-    return None if box is None else [[float(v) for v in box[0]], [float(v) for v in box[1]]]
-
-
-def with_scene_box(mapper_cfg: Optional[Path], data: Path, out: Path) -> Optional[Path]:
-    """Mapper YAML (written under OUT/config) = the user's mapper section + ``bbox`` from
-    :func:`scene_box` unless the user set one; unchanged when there is nothing to add."""
-    overrides = read_yaml_mapping(mapper_cfg) if mapper_cfg else {}
-    box = scene_box(data, overrides)
-    if box is None:
+def with_user_box(mapper_cfg: Optional[Path], bbox: Optional[list], out: Path) -> Optional[Path]:
+    """Mapper YAML (written under OUT/config) = the user's mapper section + the ``--bbox`` they gave;
+    unchanged without one. Otherwise the mapper bounds the scene itself, from the points it
+    triangulates, and grows the box as the camera explores (nothing else of the dataset is read)."""
+    if bbox is None:
         return mapper_cfg
-    # the box is already widened by the margin: keep bbox_margin out of it
+    overrides = read_yaml_mapping(mapper_cfg) if mapper_cfg else {}
     path = out / "config" / "mapper.yaml"
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(yaml.safe_dump({**overrides, "bbox": box}, sort_keys=False))
-    print(f"fmapping up: mapper box {box} (from the dataset)", flush=True)
+    path.write_text(yaml.safe_dump({**overrides, "bbox": [list(map(float, bbox[0])), list(map(float, bbox[1]))]},
+                                   sort_keys=False))
+    print(f"fmapping up: mapper box {bbox} (--bbox)", flush=True)
     return path
 
 
@@ -403,7 +380,7 @@ def run_up(args) -> int:
     if opts.tracker_frontend not in ("mono", "map"):
         raise ValueError(f"launcher.tracker_frontend must be 'mono' or 'map', got {opts.tracker_frontend!r}")
     mono = poses == "tracker" and opts.tracker_frontend == "mono"
-    mapper_cfg = with_scene_box(mapper_cfg, data, out)
+    mapper_cfg = with_user_box(mapper_cfg, getattr(args, "bbox", None), out)
     info = run_info(data, poses, mapper_cfg, tracker_cfg, opts)  # errors in data or configs: before any process
     started = time.time()
     mapper_argv = py + ["services.mapper", "--poses", poses, "--out", str(out)] + net() + threads

@@ -75,6 +75,28 @@ def expected_depth_l1(weights: Tensor, t: Tensor, acc: Tensor, t_far: Tensor, ta
     return per.mean()
 
 
+def sparse_depth_loss(weights: Tensor, t: Tensor, acc: Tensor, t_far: Tensor, target: Tensor, point_weight: Tensor,
+                      cap: float = 0.5) -> Tensor:
+    """Pull each ray's termination distribution onto a sparse (triangulated) depth ``target``.
+
+    Per ray the expected *relative* distance of termination from the target,
+    ``sum_i w_i |t_i - z| / z + (1 - acc) |t_far - z| / z`` (unreached mass ends at the far bound),
+    so weight in front of the point (floaters) and behind it is penalised by how far off it is,
+    and the term does not depend on the world's unit (monocular maps have none). Each ray's
+    value ``x`` enters as ``x / (1 + x / cap)`` (bounded by ``cap``, its pull fading with the
+    error): a badly triangulated point cannot drag the surface far, yet an empty ray still
+    feels it. Mean weighted by ``point_weight`` (the points' confidence); 0 when no ray is valid.
+    """
+    valid = torch.isfinite(target) & (target > 0) & (point_weight > 0)
+    if not bool(valid.any()):
+        return weights.sum() * 0.0
+    z = target[valid, None]
+    per = (weights[valid] * (t[valid] - z).abs()).sum(-1) / z[:, 0] \
+        + (1 - acc[valid]) * (t_far[valid] - z[:, 0]).abs() / z[:, 0]
+    w = point_weight[valid]
+    return (per / (1 + per / cap) * w).sum() / w.sum()
+
+
 def patch_offsets(radius: int = 1, dilation: float = 1.0, device=None, dtype=torch.float32) -> Tensor:
     """Pixel offsets (P, 2) of a (2r+1)^2 square patch, spaced ``dilation`` pixels."""
     r = torch.arange(-radius, radius + 1, device=device, dtype=dtype) * dilation

@@ -55,10 +55,12 @@ from fmapping.cancel import StopFn, check_stop
 from fmapping.device import pick_device
 from fmapping.field import FieldConfig, build_field
 from fmapping.geometry import se3_exp, se3_inverse
-from fmapping.losses import expected_depth_l1, photometric_loss, sample_consistency_cost, warping_loss
+from fmapping.losses import (expected_depth_l1, photometric_loss, sample_consistency_cost, sparse_depth_loss,
+                             warping_loss)
 from fmapping.render import alpha_to_weights, composite, raw_to_alpha, render_rays, sample_deltas
 from fmapping.sampling import ray_aabb, sample_pdf, stratified
 from fmapping.sampling.sliding_window import sliding_window_sample
+from fmapping.sparse_points import SparsePointsConfig, TrackTriangulator, aabb_from_points
 
 STATE_VERSION = 1
 
@@ -121,11 +123,21 @@ class MapperConfig:
     l1_weight: float = 0.0
     use_depth: bool = False
     depth_weight: float = 0.5
+    # --- sparse points: KLT tracks triangulated with the given poses (fmapping.sparse_points)
+    sparse: SparsePointsConfig = dc_field(default_factory=SparsePointsConfig)
+    sparse_depth_weight: float = 0.5  # weight of the sparse depth term (0: off); pulls rays onto triangulated points
+    sparse_rays: int = 128  # rays per iteration through triangulated points
+    # --- per-frame affine colour (auto exposure / white balance): rendered = (1 + a) * colour + b per channel
+    exposure: bool = True
+    lr_exposure: float = 0.001
+    exposure_reg: float = 0.01  # pull of (a, b) towards 0 (no change)
     # --- scene bounds
     near: float = 0.1
     far: float = 6.0
-    bbox: Optional[tuple] = None  # ((xmin, ymin, zmin), (xmax, ymax, zmax))
+    bbox: Optional[tuple] = None  # ((xmin, ymin, zmin), (xmax, ymax, zmax)); given: fixed, no growth
     bbox_margin: float = 0.1
+    bounds: str = "points"  # box without `bbox`: "points" (triangulated, grows with them) | "frusta" (near..far)
+    bounds_grow: float = 0.05  # re-fit the box when the points leave it by more than this share of its extent
     # --- closing refinement
     final_global_iters: int = 300
     seed: int = 0
@@ -141,6 +153,11 @@ class MapperConfig:
             raise ValueError("MapperConfig.new_frames_per_window must be in 1..window_size - n_global_keyframes")
         if self.sampler not in ("pdf", "sliding_window", "stratified"):
             raise ValueError(f"MapperConfig.sampler must be pdf, sliding_window or stratified, got {self.sampler!r}")
+        if self.bounds not in ("points", "frusta"):
+            raise ValueError(f"MapperConfig.bounds must be 'points' or 'frusta', got {self.bounds!r}")
+        if self.sparse_depth_weight < 0 or self.sparse_rays < 0 or self.lr_exposure < 0 or self.exposure_reg < 0:
+            raise ValueError("MapperConfig: sparse_depth_weight, sparse_rays, lr_exposure and exposure_reg must be >= 0")
+        self.sparse.validate()
         if self.warp_depth not in ("far", "expected"):
             raise ValueError(f"MapperConfig.warp_depth must be 'far' or 'expected', got {self.warp_depth!r}")
         if not 0 < self.near < self.far:
@@ -247,6 +264,10 @@ class Mapper:
         self._iterations = 0
         self._finished = False
         self._should_stop = should_stop
+        need_points = (cfg.bounds == "points" and self._aabb_given is None) or cfg.sparse_depth_weight > 0
+        self._sparse: Optional[TrackTriangulator] = TrackTriangulator(camera, cfg.sparse) if need_points else None
+        self._exposure: dict[int, torch.nn.Parameter] = {}  # frame id -> (a_r, a_g, a_b, b_r, b_g, b_b)
+        self._box_refits = 0
 
     # ================================================================= public API
     def add_frame(self, rgb: np.ndarray, c2w: Optional[np.ndarray], timestamp: float = 0.0,
@@ -264,6 +285,10 @@ class Mapper:
         self._poses[fid] = pose
         self._timestamps[fid] = float(timestamp)
         self._finished = False
+        if self._sparse is not None and fid not in self._guessed:  # a guessed pose would triangulate garbage
+            self._sparse.add(fid, img.numpy(), pose.numpy())
+        if self.cfg.exposure:
+            self._new_exposure(fid)
         if not self.initialized:
             self._init_ids.append(fid)
             if len(self._init_ids) >= self.cfg.init_frames:
@@ -293,6 +318,8 @@ class Mapper:
         checked = {int(i): _checked_pose(c2w, f"set_poses: frame {i}") for i, c2w in poses.items()
                    if int(i) in self._poses}
         self._poses.update(checked)
+        if self._sparse is not None:
+            self._sparse.set_poses({i: p.numpy() for i, p in checked.items()})
         return len(checked)
 
     def frame_poses(self) -> dict[int, np.ndarray]:
@@ -315,11 +342,12 @@ class Mapper:
 
     @torch.no_grad()
     def render(self, c2w, camera: Optional[PinholeCamera] = None, chunk: int = 2048,
-               samples: Optional[tuple[int, int]] = None) -> dict:
+               samples: Optional[tuple[int, int]] = None, frame: Optional[int] = None) -> dict:
         """Render a full image (deterministic samples, black background) as numpy float32:
         ``rgb`` (H, W, 3) in [0, 1]; ``depth`` (H, W) = ``sum w t`` (not normalised, as
         :class:`fmapping.render.RenderOutput`); ``depth_normalized`` = ``depth / acc`` (the camera z
-        of the expected surface, 0 where ``acc`` < 1e-6); ``acc`` (H, W) accumulated opacity."""
+        of the expected surface, 0 where ``acc`` < 1e-6); ``acc`` (H, W) accumulated opacity. With
+        ``frame``, the colour is as that frame's camera saw it (its exposure, :meth:`exposure`)."""
         if self.field is None:
             raise RuntimeError("Mapper.render: the map is not initialised yet")
         cam = camera or self.camera
@@ -337,9 +365,13 @@ class Mapper:
             acc.append(out.acc)
         h, w = cam.height, cam.width
         acc_t, dep_t = torch.cat(acc), torch.cat(dep)
+        rgb_t = torch.cat(rgb)
+        if frame is not None:
+            gain, offset = self.exposure(frame)
+            rgb_t = rgb_t * torch.as_tensor(gain, device=rgb_t.device) + torch.as_tensor(offset, device=rgb_t.device)
         dn = torch.where(acc_t > 1e-6, dep_t / acc_t.clamp_min(1e-6), torch.zeros_like(acc_t))
         return {
-            "rgb": torch.cat(rgb).reshape(h, w, 3).clamp(0, 1).cpu().numpy(),
+            "rgb": rgb_t.reshape(h, w, 3).clamp(0, 1).cpu().numpy(),
             "depth": dep_t.reshape(h, w).cpu().numpy(),
             "depth_normalized": dn.reshape(h, w).cpu().numpy(),
             "acc": acc_t.reshape(h, w).cpu().numpy(),
@@ -361,6 +393,9 @@ class Mapper:
             "final_seconds": sum(s.seconds for s in self._stats if s.kind == "final"),
             "total_seconds": sum(s.seconds for s in self._stats),
             "rays_per_iter": self.cfg.rays_per_iter,
+            "aabb": None if self.aabb is None else self.aabb.detach().cpu().tolist(),
+            "box_refits": self._box_refits,
+            "sparse_points": 0 if self._sparse is None else int(len(self._sparse.points)),
             "samples_per_ray": self.cfg.n_coarse + self.cfg.n_fine,
         }
 
@@ -406,6 +441,28 @@ class Mapper:
         a, b = self._poses[n - 2], self._poses[n - 1]
         return b @ se3_inverse(a) @ b
 
+    # ================================================================ exposure
+    def _new_exposure(self, fid: int) -> None:
+        p = torch.nn.Parameter(torch.zeros(6, dtype=torch.float32, device=self.device), requires_grad=fid > 0)
+        self._exposure[fid] = p
+        if self._opt is not None and p.requires_grad:
+            for g in self._opt.param_groups:
+                if g.get("name") == "exposure":
+                    g["params"].append(p)
+
+    def _exposure_of(self, ids: list[int]) -> Optional[Tensor]:
+        """(V, 6) per-frame colour parameters of frames ``ids`` (differentiable), None when off."""
+        if not self.cfg.exposure:
+            return None
+        return torch.stack([self._exposure[i] for i in ids])
+
+    def exposure(self, fid: int) -> tuple[np.ndarray, np.ndarray]:
+        """Frame ``fid``'s estimated colour gain and offset: observed = gain * scene colour + offset."""
+        if not self.cfg.exposure or fid not in self._exposure:
+            return np.ones(3, np.float32), np.zeros(3, np.float32)
+        e = self._exposure[fid].detach().cpu().numpy()
+        return 1.0 + e[:3], e[3:].copy()
+
     # ================================================================ set-up
     def _build(self) -> None:
         """Decide the bounding box and create field + optimiser (at init, or on load)."""
@@ -419,6 +476,9 @@ class Mapper:
             if cfg.use_depth and any(i in self._depths for i in ids):
                 b = aabb_from_depth(poses, [self._depths[i].numpy() if i in self._depths else None for i in ids],
                                     self.camera, cfg.bbox_margin)
+            if b is None and cfg.bounds == "points":
+                self._sparse.flush()
+                b = aabb_from_points(self._sparse.points, poses[:, :3, 3], margin=cfg.bbox_margin)
             if b is None:
                 b = aabb_from_poses(poses, self.camera, cfg.near, cfg.far, cfg.bbox_margin)
             box = torch.as_tensor(b, dtype=torch.float32)
@@ -436,8 +496,16 @@ class Mapper:
         groups.append({"params": list(self.field.decoder_parameters()), "lr": cfg.lr_decoder, "name": "decoder"})
         if self._pose_corr is not None:
             groups.append({"params": [self._pose_corr], "lr": cfg.lr_pose, "name": "pose"})
-        groups = [g for g in groups if g["params"]]
+        if cfg.exposure:  # frame 0 fixes the colour gauge; frames after the build join the group as they come
+            groups.append({"params": [p for i, p in sorted(self._exposure.items()) if p.requires_grad],
+                           "lr": cfg.lr_exposure, "name": "exposure"})
+        groups = [g for g in groups if g["params"] or g["name"] == "exposure"]
         self._opt = torch.optim.Adam(groups, betas=(0.9, 0.99))
+
+    def _set_lr(self, name: str, lr: float) -> None:
+        for g in self._opt.param_groups:
+            if g.get("name") == name:
+                g["lr"] = lr
 
     def _freeze_decoder(self) -> None:
         for p in self.field.decoder_parameters():
@@ -533,8 +601,38 @@ class Mapper:
     def _images_f(self, ids: list[int]) -> Tensor:
         return torch.stack([self._images[i] for i in ids]).to(self.device, torch.float32) / 255.0
 
-    def _step(self, ids: list[int], imgs: Tensor, mode: str, n_coarse: int, n_fine: int, sw_window: int = 0) -> dict:
+    @torch.no_grad()
+    def _scene_images(self, ids: list[int], imgs: Tensor) -> Tensor:
+        """``imgs`` with each frame's current exposure undone (observed = (1 + a) c + b)."""
+        expo = self._exposure_of(ids)
+        if expo is None:
+            return imgs
+        e = expo.detach()
+        return (imgs - e[:, None, None, 3:]) / (1 + e[:, None, None, :3]).clamp_min(0.1)
+
+    def _sparse_batch(self, ids: list[int]) -> Optional[tuple]:
+        """The triangulated points seen by frames ``ids``: (window index, pixel, depth, weight) tensors."""
+        if self._sparse is None or self.cfg.sparse_depth_weight <= 0:
+            return None
+        rows = []
+        for k, i in enumerate(ids):
+            uv, z, w = self._sparse.frame_depths(i)
+            if len(z):
+                rows.append((np.full(len(z), k), uv, z, w))
+        if not rows:
+            return None
+        f, uv, z, w = (np.concatenate(x) for x in zip(*rows))
+        dev = self.device
+        return (torch.as_tensor(f, device=dev), torch.as_tensor(uv, dtype=torch.float32, device=dev),
+                torch.as_tensor(z, dtype=torch.float32, device=dev), torch.as_tensor(w, dtype=torch.float32, device=dev))
+
+    def _step(self, ids: list[int], imgs: Tensor, mode: str, n_coarse: int, n_fine: int, sw_window: int = 0,
+              scene_imgs: Optional[Tensor] = None, sparse: Optional[tuple] = None) -> dict:
+        """One optimisation iteration over the window ``ids`` (images ``imgs``, float (V, H, W, 3)).
+        ``scene_imgs``: the images with each frame's exposure undone (for the losses that compare
+        views with each other); ``sparse``: the window's triangulated points (:meth:`_sparse_batch`)."""
         cfg, cam = self.cfg, self.camera
+        scene_imgs = imgs if scene_imgs is None else scene_imgs
         n = cfg.rays_per_iter
         v = len(ids)
         g = self._gen
@@ -547,7 +645,9 @@ class Mapper:
         target = imgs[fi, vv, u]
         out, (tn, tf, ok) = self._render_batch(o, d, mode, n_coarse, n_fine, grad=True, sw_window=sw_window)
         okf = ok.to(torch.float32)
-        photo = photometric_loss(out.rgb, target, cfg.photo_loss, cfg.huber_delta, weight=okf)
+        expo = self._exposure_of(ids)
+        pred = out.rgb if expo is None else out.rgb * (1 + expo[fi, :3]) + expo[fi, 3:]
+        photo = photometric_loss(pred, target, cfg.photo_loss, cfg.huber_delta, weight=okf)
         loss = photo
         warp = torch.zeros((), device=self.device)
         if cfg.warp_weight > 0 and v > 1:
@@ -559,11 +659,11 @@ class Mapper:
                 sub = torch.randperm(v, generator=g)[:cfg.warp_views].to(self.device)
                 pos = torch.full((v,), -1, dtype=torch.long, device=self.device)
                 pos[sub] = torch.arange(len(sub), device=self.device)
-                w_imgs, w_c2w, w_src = imgs[sub], c2w[sub], pos[fi]
+                w_imgs, w_c2w, w_src = scene_imgs[sub], c2w[sub], pos[fi]
             else:
-                w_imgs, w_c2w, w_src = imgs, c2w, fi
+                w_imgs, w_c2w, w_src = scene_imgs, c2w, fi
             for dil in cfg.warp_dilations:
-                ref = _pixel_patches(imgs, fi, u, vv, cfg.warp_radius, int(round(float(dil))))
+                ref = _pixel_patches(scene_imgs, fi, u, vv, cfg.warp_radius, int(round(float(dil))))
                 res = warping_loss(o, d, depth, uv, w_src, w_imgs, w_c2w, cam, radius=cfg.warp_radius,
                                    dilation=float(dil), keep=cfg.warp_keep, min_z=cfg.near, ray_weight=okf,
                                    ref_colors=ref)
@@ -571,8 +671,18 @@ class Mapper:
             loss = loss + cfg.warp_weight * warp
         pc = torch.zeros((), device=self.device)
         if cfg.pc_weight > 0 and v > 1:
-            pc = self._pc_loss(out, o, d, fi, u, vv, imgs, c2w)
+            pc = self._pc_loss(out, o, d, fi, u, vv, scene_imgs, c2w)
             loss = loss + cfg.pc_weight * pc
+        sp = torch.zeros((), device=self.device)
+        if sparse is not None and cfg.sparse_depth_weight > 0 and cfg.sparse_rays > 0:
+            s_frame, s_uv, s_z, s_w = sparse
+            pick = torch.randint(len(s_z), (min(cfg.sparse_rays, len(s_z)),), generator=g).to(self.device)
+            so, sd = cam.rays(c2w[s_frame[pick]], s_uv[pick])
+            s_out, (_, s_tf, s_ok) = self._render_batch(so, sd, mode, n_coarse, n_fine, grad=True, sw_window=sw_window)
+            sp = sparse_depth_loss(s_out.weights, s_out.t, s_out.acc, s_tf, s_z[pick], s_w[pick] * s_ok)
+            loss = loss + cfg.sparse_depth_weight * sp
+        if expo is not None and cfg.exposure_reg > 0:
+            loss = loss + cfg.exposure_reg * expo.pow(2).mean()
         if cfg.use_depth and self._depths:
             dts = [self._depths.get(i) for i in ids]
             if all(x is not None for x in dts):
@@ -587,7 +697,7 @@ class Mapper:
         self._opt.step()
         self._iterations += 1
         return {"loss": float(loss.detach()), "photo": float(photo.detach()), "warp": float(warp.detach()),
-                "pc": float(pc.detach()), "samples": int(out.t.shape[-1]) if hasattr(out, "t") and out.t is not None else n_coarse + n_fine}
+                "pc": float(pc.detach()), "sparse": float(sp.detach()), "samples": int(out.t.shape[-1]) if hasattr(out, "t") and out.t is not None else n_coarse + n_fine}
 
     def _pc_loss(self, out, o: Tensor, d: Tensor, fi: Tensor, u: Tensor, vv: Tensor, imgs: Tensor,
                  c2w: Tensor) -> Tensor:
@@ -615,10 +725,13 @@ class Mapper:
                    sw_window: int = 0, t0: Optional[float] = None) -> WindowStats:
         t0 = time.perf_counter() if t0 is None else t0
         imgs = self._images_f(ids)
+        sparse = self._sparse_batch(ids)
         logs = []
-        for _ in range(iters):
+        for k in range(iters):
             check_stop(self._should_stop, f"{kind} update (after {len(logs)} of {iters} iterations)")
-            logs.append(self._step(ids, imgs, mode, n_coarse, n_fine, sw_window))
+            if k % 10 == 0:  # the exposures move slowly: undo them every 10 iterations
+                scene_imgs = self._scene_images(ids, imgs)
+            logs.append(self._step(ids, imgs, mode, n_coarse, n_fine, sw_window, scene_imgs, sparse))
         st = WindowStats(
             index=len(self._stats), kind=kind, seconds=time.perf_counter() - t0, iterations=iters,
             loss=float(np.mean([x["loss"] for x in logs[-5:]])) if logs else float("nan"),
@@ -637,7 +750,9 @@ class Mapper:
         ids = list(self._init_ids)
         st = None
         total = {"iters": 0, "loss": [], "photo": [], "warp": []}
-        for window, samples in cfg.init_rounds:
+        for r, (window, samples) in enumerate(cfg.init_rounds):
+            # exposures start after the first round: from an empty map, a colour offset would explain the images
+            self._set_lr("exposure", cfg.lr_exposure if r > 0 else 0.0)
             if window == 0:
                 s = self._run_iters("init", ids, cfg.init_iters_per_round, "stratified", samples, 0)
             else:  # the round's samples = the coarse stratified ones + (samples - n_coarse) sliding-window ones
@@ -701,6 +816,7 @@ class Mapper:
             if old - last_kf >= cfg.keyframe_every:
                 self._keyframes.append(old)
             self._drop_image_if_unused(old)
+        self._grow_box()
         glob = self._select_global(self._local, cfg.n_global_keyframes)
         ids = glob + list(self._local)
         self._window = ids
@@ -708,6 +824,29 @@ class Mapper:
                              sw_window=cfg.sw_window, t0=t0)
         self._stats.append(st)
         return st
+
+    def _grow_box(self) -> None:
+        """Re-fit the box to the triangulated points when they leave it (the camera explores): the box
+        only grows, the field is resampled onto it (:meth:`fmapping.field.Field.refit_box`)."""
+        cfg = self.cfg
+        if self._aabb_given is not None or cfg.bounds != "points" or self._sparse is None:
+            return
+        centres = np.stack([p[:3, 3].numpy() for p in self._poses.values()])
+        b = aabb_from_points(self._sparse.points, centres, margin=cfg.bbox_margin)
+        if b is None:
+            return
+        cur = self.aabb.detach().cpu().numpy().astype(np.float64)
+        slack = cfg.bounds_grow * (cur[1] - cur[0])
+        if not ((cur[0] - b[0] > slack).any() or (b[1] - cur[1] > slack).any()):
+            return
+        try:
+            self.field.refit_box(np.stack([np.minimum(cur[0], b[0]), np.maximum(cur[1], b[1])]))
+        except NotImplementedError:
+            return
+        self.aabb = self.field.aabb.detach().clone()
+        for p in self.field.grid_parameters():  # Adam's moments belonged to the old node positions
+            self._opt.state.pop(p, None)
+        self._box_refits += 1
 
     def _run_final(self) -> WindowStats:
         cfg = self.cfg
@@ -809,6 +948,9 @@ class Mapper:
             "iterations": self._iterations,
             "stats": [s.to_dict() for s in self._stats],
             "rng": self._gen.get_state().clone(),
+            "exposure": {int(i): p.detach().cpu().clone() for i, p in self._exposure.items()},
+            "sparse": None if self._sparse is None else self._sparse.state_dict(),
+            "box_refits": self._box_refits,
         }
 
     def load_state_dict(self, d: dict) -> None:
@@ -835,6 +977,12 @@ class Mapper:
         self._iterations = int(d["iterations"])
         self._stats = [WindowStats(**s) for s in d["stats"]]
         self._gen.set_state(d["rng"].clone())
+        self._box_refits = int(d.get("box_refits", 0))
+        if self._sparse is not None and d.get("sparse") is not None:
+            self._sparse.load_state_dict(d["sparse"])
+        self._exposure = {}
+        for i, e in sorted(d.get("exposure", {}).items()):
+            self._exposure[int(i)] = torch.nn.Parameter(e.clone().to(self.device), requires_grad=int(i) > 0)
         self.field, self._opt, self._pose_corr, self.aabb = None, None, None, None
         if d["field"] is not None:
             self._aabb_given, given = d["aabb"].clone(), self._aabb_given

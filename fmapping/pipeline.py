@@ -11,10 +11,11 @@ writes into ``args.out``:
   count, per-window seconds, totals, held-out PSNR and - when the dataset ships a
   visible GT cloud (``meta["gt_visible_cloud"]``) - reconstruction metrics.
 
-Scene bounds: the config ``bbox`` when set, else the room bounds that ``fmapping synth``
-writes in ``scene.json`` (as NICE-SLAM configs give per-scene bounds), else the box of
-the back-projected depth (with ``--use-depth``), else the view frusta of all given poses
-between ``near`` and ``far``.
+Scene bounds: the config ``bbox`` (``--bbox``) when set, else the box of the back-projected
+depth (with ``--use-depth``), else (``bounds: points``, the default) the box of points
+triangulated from KLT tracks over all frames with the given poses
+(:mod:`fmapping.sparse_points`), else the view frusta of all given poses between ``near`` and
+``far``. Nothing the generator of a synthetic scene knows (its ``scene.json``) is used.
 """
 from __future__ import annotations
 
@@ -27,9 +28,10 @@ from typing import Optional
 
 import numpy as np
 
-from fmapping.cancel import Cancelled, StopFn
+from fmapping.cancel import Cancelled, StopFn, check_stop
 from fmapping.config import load_config, to_dict
 from fmapping.mapper import Mapper, MapperConfig, aabb_from_depth, aabb_from_poses
+from fmapping.sparse_points import TrackTriangulator, aabb_from_points
 
 log = logging.getLogger("fmapping.pipeline")
 
@@ -55,18 +57,15 @@ def _pose_source(ds, poses_arg: str) -> list:
     return [c2w[j] if j >= 0 else None for j in idx]
 
 
-def scene_aabb(ds, cfg: MapperConfig, poses: list, use_depth: Optional[bool] = None) -> Optional[np.ndarray]:
-    """The mapper's box for ``ds``: None when ``cfg.bbox`` is set (the mapper takes it), else the
-    synthetic scene's box, else the dataset's depth (when ``use_depth``, default ``cfg.use_depth``),
-    else the frusta of ``poses`` (None entries skipped)."""
+def scene_aabb(ds, cfg: MapperConfig, poses: list, use_depth: Optional[bool] = None,
+               should_stop: StopFn = None) -> Optional[np.ndarray]:
+    """The mapper's box for ``ds`` with the given ``poses`` (None entries skipped): None when
+    ``cfg.bbox`` is set (the mapper takes it), else the dataset's depth (when ``use_depth``, default
+    ``cfg.use_depth``), else the points triangulated over every frame (``cfg.bounds == "points"``),
+    else the frusta of ``poses``."""
     use_depth = cfg.use_depth if use_depth is None else use_depth
     if cfg.bbox is not None:
         return None  # the mapper takes it from its config
-    scene = ds.meta.get("scene") if isinstance(ds.meta, dict) else None
-    if isinstance(scene, dict) and isinstance(scene.get("bbox"), dict):
-        b = scene["bbox"]
-        return np.stack([np.asarray(b["min"], np.float64) - cfg.bbox_margin,
-                         np.asarray(b["max"], np.float64) + cfg.bbox_margin])
     known = [(i, p) for i, p in enumerate(poses) if p is not None]
     if use_depth and ds.has_depth:
         step = max(1, len(known) // 30)
@@ -74,6 +73,20 @@ def scene_aabb(ds, cfg: MapperConfig, poses: list, use_depth: Optional[bool] = N
         box = aabb_from_depth(np.stack([p for _, p in sel]), [ds[i].depth for i, _ in sel], ds.camera, cfg.bbox_margin)
         if box is not None:
             return box
+    centres = np.stack([p[:3, 3] for _, p in known])
+    if cfg.bounds == "points":
+        tri = TrackTriangulator(ds.camera, cfg.sparse)
+        for i, p in known:
+            check_stop(should_stop, "scene box (triangulating tracks)")
+            tri.add(i, ds[i].rgb, p)
+        tri.flush()
+        box = aabb_from_points(tri.points, centres, margin=cfg.bbox_margin)
+        if box is not None:
+            log.info("scene box from %d triangulated points: min %s max %s", len(tri.points),
+                     np.round(box[0], 2).tolist(), np.round(box[1], 2).tolist())
+            return box
+        log.warning("too few triangulated points for a scene box: using the view frusta (near %.2f, far %.2f)",
+                    cfg.near, cfg.far)
     return aabb_from_poses(np.stack([p for _, p in known]), ds.camera, cfg.near, cfg.far, cfg.bbox_margin)
 
 
@@ -83,6 +96,8 @@ def build_config(args) -> MapperConfig:
         cfg = dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, kind=args.field))
     if getattr(args, "use_depth", False):
         cfg = dataclasses.replace(cfg, use_depth=True)
+    if getattr(args, "bbox", None) is not None:
+        cfg = dataclasses.replace(cfg, bbox=tuple(tuple(map(float, r)) for r in args.bbox))
     dev = getattr(args, "device", None)
     if dev and dev != "auto":
         cfg = dataclasses.replace(cfg, device=dev)
@@ -93,10 +108,12 @@ def build_config(args) -> MapperConfig:
 
 
 def _heldout_psnr(mapper: Mapper, ds, used: list, n: int = 8) -> Optional[float]:
-    """Mean PSNR of up to ``n`` frames that are not keyframes, rendered at half resolution."""
+    """Mean PSNR of up to ``n`` frames that are not keyframes, rendered at half resolution with the
+    frame's estimated exposure. Undistortion's black borders are no image content: masked out."""
     import cv2
 
     from fmapping.metrics import psnr
+    from fmapping.tracking.direct import image_valid_mask
 
     kf = set(mapper.keyframe_ids())
     cand = [(fid, i) for fid, i in enumerate(used) if fid not in kf]
@@ -107,9 +124,13 @@ def _heldout_psnr(mapper: Mapper, ds, used: list, n: int = 8) -> Optional[float]
     poses = mapper.frame_poses()
     vals = []
     for fid, i in sel:
-        img = cv2.resize(ds[i].rgb, (cam.width, cam.height), interpolation=cv2.INTER_AREA) / 255.0
-        out = mapper.render(poses[fid], cam)
-        vals.append(psnr(out["rgb"], img))
+        rgb = ds[i].rgb
+        valid = image_valid_mask(rgb, erode=2)
+        img = cv2.resize(rgb, (cam.width, cam.height), interpolation=cv2.INTER_AREA) / 255.0
+        mask = None if valid is None else cv2.resize(valid.astype(np.uint8), (cam.width, cam.height),
+                                                     interpolation=cv2.INTER_NEAREST) > 0
+        out = mapper.render(poses[fid], cam, frame=fid)
+        vals.append(psnr(out["rgb"], img, mask=mask))
     return float(np.mean(vals))
 
 
@@ -217,7 +238,10 @@ def run_map(args, should_stop: StopFn = None) -> dict:
     ds = open_job_dataset(args)
     cfg = build_config(args)
     poses = _pose_source(ds, getattr(args, "poses", "gt"))
-    aabb = scene_aabb(ds, cfg, poses)
+    try:
+        aabb = scene_aabb(ds, cfg, poses, should_stop=should_stop)
+    except Cancelled:
+        aabb = None
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     mapper = Mapper(cfg, ds.camera, aabb=aabb, should_stop=should_stop)

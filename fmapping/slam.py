@@ -94,7 +94,6 @@ class SlamConfig:
     init_depth: float = 2.0  # assumed depth of the constant-depth plane of the bootstrap (units if no anchor)
     scale_anchor: str = "auto"  # "auto" | "gt" | "depth" | "none"
     anchor_world_gt: bool = True  # put frame 0 at its GT pose when GT exists
-    use_scene_bbox: bool = True  # take the synthetic room bounds from scene.json when in the GT frame
     init_min_inlier_ratio: float = 0.6
     init_min_depth_fraction: float = 0.3  # fraction of reference pixels the map must render
     init_retries: int = 2
@@ -125,6 +124,8 @@ def build_slam_config(args) -> SlamConfig:
     m = cfg.mapper
     if getattr(args, "use_depth", False):
         m = dataclasses.replace(m, use_depth=True)
+    if getattr(args, "bbox", None) is not None:
+        m = dataclasses.replace(m, bbox=tuple(tuple(map(float, r)) for r in args.bbox))
     dev = getattr(args, "device", None)
     if dev and dev != "auto":
         m = dataclasses.replace(m, device=dev)
@@ -248,22 +249,10 @@ class SlamRun:
         self._rc = None
 
     # -------------------------------------------------------------- set-up
-    def _aabb(self):
-        m = self.cfg.mapper
-        if m.bbox is not None or not self.cfg.use_scene_bbox:
-            return None
-        scene = self.ds.meta.get("scene") if isinstance(self.ds.meta, dict) else None
-        in_gt_frame = self.poses_mode != "photometric" or (self.gt0 is not None and self.cfg.anchor_world_gt
-                                                           and self.anchor in ("gt",))
-        if in_gt_frame and isinstance(scene, dict) and isinstance(scene.get("bbox"), dict):
-            b = scene["bbox"]
-            return np.stack([np.asarray(b["min"], np.float64) - m.bbox_margin,
-                             np.asarray(b["max"], np.float64) + m.bbox_margin])
-        return None
-
     def _new_mapper(self, init_frames: int) -> Mapper:
+        """The mapper bounds the scene itself (``mapper.bbox`` when given, else its triangulated points)."""
         mcfg = dataclasses.replace(self.cfg.mapper, init_frames=init_frames)
-        return Mapper(mcfg, self.camera, aabb=self._aabb(), should_stop=self.should_stop)
+        return Mapper(mcfg, self.camera, should_stop=self.should_stop)
 
     # -------------------------------------------------------------- external pose sources
     def _external_poses(self) -> list:

@@ -234,3 +234,30 @@ def test_pose_optimisation_at_init_reduces_pose_error():
     # measured (noise seeds 1, 2): 4.6 -> 2.1 cm, 0.92 -> 0.42 deg; 2.5 -> 1.7 cm, 0.92 -> 0.24 deg. With 100
     # iterations per round the rotation had not converged on every CPU (seed 1: 0.52 deg on one, 0.75 on another)
     assert t1 < 0.75 * t0 and r1 < 0.75 * r0, (t0, t1, r0, r1)
+
+
+# ------------------------------------------------------------------ exposure
+def test_exposure_compensation_recovers_known_gain_and_offset():
+    """Frames 1.. are seen through a known per-channel gain and offset (frame 0 as rendered): the
+    mapper's per-frame colour model explains them, mapping the scene colours onto the observed
+    ones much closer than leaving them alone does."""
+    scene, cam, c2w, views = tiny_scene(12, size=(80, 60))
+    gains = [np.ones(3)] + [1 + 0.15 * np.sin(np.arange(3) + i) for i in range(1, 12)]
+    offsets = [np.zeros(3)] + [0.04 * np.cos(2 * np.arange(3) + i) for i in range(1, 12)]
+    m = Mapper(tiny_config(init_frames=8, init_iters_per_round=60, final_global_iters=30), cam, aabb=room_aabb(scene))
+    for i in range(12):
+        seen = np.clip(views[i][0] / 255.0 * gains[i] + offsets[i], 0, 1)
+        m.add_frame(np.round(seen * 255).astype(np.uint8), c2w[i], i / 30)
+    m.finish()
+    err, plain = [], []
+    for i in range(1, 12):
+        c = views[i][0].reshape(-1, 3) / 255.0
+        gain, offset = m.exposure(i)
+        want = c * gains[i] + offsets[i]
+        err.append(np.abs(c * gain + offset - want).mean())
+        plain.append(np.abs(c - want).mean())
+    assert np.all(m.exposure(0)[0] == 1) and np.all(m.exposure(0)[1] == 0)  # frame 0 fixes the gauge
+    # measured: 0.017 against 0.030 uncompensated (mean colour error per pixel, 0..1)
+    assert np.mean(err) < 0.7 * np.mean(plain), (np.mean(err), np.mean(plain))
+    off = Mapper(tiny_config(exposure=False), cam)
+    assert off.exposure(3) == (pytest.approx(np.ones(3)), pytest.approx(np.zeros(3)))

@@ -181,6 +181,10 @@ class Field(nn.Module):
     def regularizer(self, kind: str = "tv") -> Tensor:  # pragma: no cover
         raise NotImplementedError
 
+    def refit_box(self, aabb) -> None:
+        """Move the field onto a new box keeping its content (kinds that cannot raise NotImplementedError)."""
+        raise NotImplementedError(f"a {self.cfg.kind!r} field cannot change its box")
+
     def flops_per_point(self) -> int:  # pragma: no cover
         raise NotImplementedError
 

@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .base import Field, FieldConfig, make_generator, randn_param, tv_1d
+from .base import Field, FieldConfig, as_aabb, make_generator, randn_param, tv_1d
 from .decoder import ColorDecoder, linear
 
 
@@ -35,6 +35,19 @@ def sample_lines(lines: Tensor, u: Tensor) -> Tensor:
     grid = torch.stack([torch.zeros_like(ut), ut], -1).unsqueeze(2)  # (3, N, 1, 2): (x=0, y=u_a)
     out = F.grid_sample(lines, grid, mode="bilinear", padding_mode="border", align_corners=True)
     return out.squeeze(-1)
+
+
+def resample_lines(lines: Tensor, old: Tensor, new: Tensor) -> Tensor:
+    """Lines (3, C, R, 1) over box ``old`` (2, 3) resampled onto ``new``'s nodes; zero where a node
+    lies outside ``old`` (empty space in the CP product: one zero factor empties the term)."""
+    r = lines.shape[2]
+    k = torch.linspace(0.0, 1.0, r, dtype=lines.dtype, device=lines.device)
+    x = new[0, :, None] + (new[1] - new[0])[:, None] * k  # (3, R) world position of every new node
+    u = 2.0 * (x - old[0, :, None]) / (old[1] - old[0])[:, None] - 1.0
+    grid = torch.stack([torch.zeros_like(u), u], -1).unsqueeze(2)  # (3, R, 1, 2)
+    out = F.grid_sample(lines, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+    return torch.where((u.abs() <= 1.0 + 1e-6)[:, None, :, None], out, torch.zeros_like(out))
+
 
 
 class _AxisProduct(torch.autograd.Function):
@@ -92,6 +105,15 @@ class CPField(Field):
         self._check_points(xyz)
         return self.decoder(self.app_features(xyz), viewdirs, basis=self.basis.weight)
 
+    def refit_box(self, aabb) -> None:
+        """Move the field onto a new box (grown as the camera explores), keeping what it holds: the
+        factor lines are resampled at the new nodes (zero outside the old box: empty space)."""
+        new = as_aabb(aabb, device=self.aabb.device, dtype=self.aabb.dtype)
+        with torch.no_grad():
+            for p in (self.density_lines, self.app_lines):
+                p.copy_(resample_lines(p.detach(), self.aabb, new))
+            self.aabb.copy_(new)
+
     def grid_parameters(self) -> list[nn.Parameter]:
         return [self.density_lines, self.app_lines]
 
@@ -114,3 +136,4 @@ class CPField(Field):
         dens = cd * (3 * 2 + 2 + 1)
         app = ca * (3 * 2 + 2) + ca * cfg.app_features
         return 2 * (dens + app) + self.decoder.flops()
+

@@ -1,0 +1,243 @@
+"""Sparse scene points from the images and their poses: KLT tracks triangulated with known poses.
+
+The mapper needs to know where the scene is before its field can represent it (the box) and,
+on weakly textured surfaces, where along a ray the surface lies (the photometric losses leave
+that ambiguous there). Both come from the same sparse points, made from what any user has:
+the frames and the poses the mapper is given (ground truth, a trajectory file or the tracker).
+
+:class:`TrackTriangulator` is fed frame by frame (``add``). Corners are followed from frame to
+frame with KLT (forward-backward checked); a track that ends, or reaches ``max_track``
+observations, is triangulated over all its views at once (least-squares ray intersection),
+kept when it lies in front of every camera, reprojects within ``max_reproj_px`` everywhere
+and its rays span at least ``min_parallax_deg``. Its weight grows with the parallax (the
+depth error of a triangulated point is about ``pixel noise / (focal * parallax)``).
+
+Each kept point remembers the pixels it was seen at, so that a frame's sparse depth
+(``frame_depths``) can be read with the frame's *current* pose.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from fmapping.camera import PinholeCamera
+from fmapping.tracking.features import KltConfig, at_width, detect_corners, klt_track, to_u8
+
+
+@dataclass
+class SparsePointsConfig:
+    max_corners: int = 400  # corners tracked at a time
+    min_track: int = 3  # observations a track needs to be triangulated
+    max_track: int = 15  # a track is triangulated (and restarted) after this many observations
+    min_parallax_deg: float = 1.5  # rays of a point must span at least this angle
+    full_weight_parallax_deg: float = 6.0  # parallax at which a point gets weight 1
+    max_reproj_px: float = 1.0  # at 320 px image width (scaled with the width)
+    half_window: int = 7  # KLT half window at 320 px width
+    min_distance: int = 8  # pixels between corners at 320 px width
+
+    def validate(self) -> None:
+        if self.max_corners < 1 or self.min_track < 2 or self.max_track < self.min_track:
+            raise ValueError("SparsePointsConfig: need max_corners >= 1 and 2 <= min_track <= max_track")
+        if not 0 < self.min_parallax_deg <= self.full_weight_parallax_deg:
+            raise ValueError("SparsePointsConfig: need 0 < min_parallax_deg <= full_weight_parallax_deg")
+        if not self.max_reproj_px > 0:
+            raise ValueError("SparsePointsConfig.max_reproj_px must be > 0")
+
+
+def triangulate_rays(centres: np.ndarray, dirs: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Least-squares intersection of rays, batched over tracks.
+
+    ``centres`` (T, K, 3) ray origins, ``dirs`` (T, K, 3) directions (any length), ``valid``
+    (T, K) which of the K rays of each track count. Returns (T, 3) points minimising the
+    summed squared distance to the valid rays (NaN where they are parallel)."""
+    d = dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
+    proj = np.eye(3) - d[..., :, None] * d[..., None, :]  # (T, K, 3, 3): removes the ray direction
+    proj = proj * valid[..., None, None]
+    a = proj.sum(1)
+    b = np.einsum("tkij,tkj->ti", proj, centres)
+    ok = np.abs(np.linalg.det(a)) > 1e-12
+    out = np.full((len(a), 3), np.nan)
+    if ok.any():
+        out[ok] = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]
+    return out
+
+
+class TrackTriangulator:
+    """Incremental KLT tracks over the frames given to :meth:`add`, triangulated with their poses."""
+
+    def __init__(self, camera: PinholeCamera, cfg: Optional[SparsePointsConfig] = None):
+        self.camera = camera
+        self.cfg = cfg or SparsePointsConfig()
+        self.cfg.validate()
+        w = camera.width
+        self._klt = KltConfig(max_corners=self.cfg.max_corners, half_window=self.cfg.half_window,
+                              min_distance=max(3, int(round(at_width(self.cfg.min_distance, w)))))
+        self._reproj = at_width(self.cfg.max_reproj_px, w)
+        self._grey: Optional[np.ndarray] = None
+        self._last_fid: Optional[int] = None
+        self._uv = np.zeros((0, 2), np.float64)  # current pixel of each live track
+        self._obs: list[list[tuple[int, np.ndarray]]] = []  # per live track: [(frame id, uv)]
+        self._poses: dict[int, np.ndarray] = {}
+        self.points = np.zeros((0, 3))  # (N, 3) world points
+        self.weights = np.zeros(0)  # (N,) in (0, 1]
+        self._frame_obs: dict[int, tuple[list, list]] = {}  # frame id -> ([point index], [uv])
+        self.frame_ids: list[int] = []
+
+    # -------------------------------------------------------------- input
+    def add(self, fid: int, rgb: np.ndarray, c2w: np.ndarray) -> None:
+        """Follow the live tracks into frame ``fid`` (pose ``c2w``), triangulate those that end."""
+        grey = to_u8(rgb)
+        self._poses[fid] = np.asarray(c2w, np.float64)
+        self.frame_ids.append(fid)
+        if self._grey is not None and len(self._uv):
+            uv, ok = klt_track(self._grey, grey, self._uv.astype(np.float32), self._klt)
+            ended = [o for o, k in zip(self._obs, ok) if not k]
+            self._obs = [o for o, k in zip(self._obs, ok) if k]
+            self._uv = np.asarray(uv[ok], np.float64)
+            for o, p in zip(self._obs, self._uv):
+                o.append((fid, p.copy()))
+            full = np.array([len(o) >= self.cfg.max_track for o in self._obs], bool)
+            if full.any():
+                ended += [o for o, f in zip(self._obs, full) if f]
+                self._obs = [o for o, f in zip(self._obs, full) if not f]
+                self._uv = self._uv[~full]
+            self._triangulate(ended)
+        new = detect_corners(grey, self._klt, self._uv if len(self._uv) else None).astype(np.float64)
+        if len(new):
+            self._uv = np.concatenate([self._uv, new]) if len(self._uv) else new
+            self._obs += [[(fid, p.copy())] for p in new]
+        self._grey = grey
+        self._last_fid = fid
+
+    def set_poses(self, poses: dict) -> None:
+        """Newer poses of frames already added (used by the tracks still live and by ``frame_depths``)."""
+        for fid, c2w in poses.items():
+            if fid in self._poses:
+                self._poses[fid] = np.asarray(c2w, np.float64)
+
+    def flush(self) -> None:
+        """Triangulate every live track now (the tracks restart at the next frame)."""
+        self._triangulate(self._obs)
+        self._obs = [[(self._last_fid, p.copy())] for p in self._uv] if self._last_fid is not None else []
+
+    # -------------------------------------------------------------- output
+    def frame_depths(self, fid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Sparse depth of frame ``fid``: pixels (M, 2), camera depths (M,) of its triangulated points
+        under the frame's current pose, weights (M,). Empty arrays when it has none."""
+        idx, uv = self._frame_obs.get(fid, ([], []))
+        if not idx:
+            return np.zeros((0, 2)), np.zeros(0), np.zeros(0)
+        idx = np.asarray(idx)
+        c2w = self._poses[fid]
+        z = (self.points[idx] - c2w[:3, 3]) @ c2w[:3, 2]
+        ok = z > 1e-6
+        return np.asarray(uv)[ok], z[ok], self.weights[idx][ok]
+
+    def points_seen_by(self, fids) -> np.ndarray:
+        """(N, 3) points observed in any of the frames ``fids``."""
+        idx = sorted({i for f in fids for i in self._frame_obs.get(f, ([], []))[0]})
+        return self.points[idx] if idx else np.zeros((0, 3))
+
+    # -------------------------------------------------------------- state
+    def state_dict(self) -> dict:
+        """Everything needed to go on exactly (tensors and plain python, for ``torch.load(weights_only=True)``)."""
+        import torch
+
+        obs = [[(int(f), torch.as_tensor(uv)) for f, uv in o] for o in self._obs]
+        return {
+            "grey": None if self._grey is None else torch.from_numpy(self._grey.copy()),
+            "last_fid": self._last_fid,
+            "uv": torch.from_numpy(self._uv.copy()),
+            "obs": obs,
+            "poses": {int(k): torch.from_numpy(v.copy()) for k, v in self._poses.items()},
+            "points": torch.from_numpy(self.points.copy()),
+            "weights": torch.from_numpy(self.weights.copy()),
+            "frame_obs": {int(k): (list(map(int, i)), torch.as_tensor(np.asarray(uv, np.float64).reshape(-1, 2)))
+                          for k, (i, uv) in self._frame_obs.items()},
+            "frame_ids": list(self.frame_ids),
+        }
+
+    def load_state_dict(self, d: dict) -> None:
+        self._grey = None if d["grey"] is None else d["grey"].numpy().copy()
+        self._last_fid = d["last_fid"]
+        self._uv = d["uv"].numpy().copy()
+        self._obs = [[(int(f), uv.numpy().copy()) for f, uv in o] for o in d["obs"]]
+        self._poses = {int(k): v.numpy().copy() for k, v in d["poses"].items()}
+        self.points = d["points"].numpy().copy()
+        self.weights = d["weights"].numpy().copy()
+        self._frame_obs = {int(k): (list(i), [p for p in uv.numpy().copy()]) for k, (i, uv) in d["frame_obs"].items()}
+        self.frame_ids = list(d["frame_ids"])
+
+    # -------------------------------------------------------------- triangulation
+    def _triangulate(self, tracks: list) -> None:
+        tracks = [t for t in tracks if len(t) >= self.cfg.min_track]
+        if not tracks:
+            return
+        cam = self.camera
+        k = max(len(t) for t in tracks)
+        n = len(tracks)
+        centres = np.zeros((n, k, 3))
+        dirs = np.zeros((n, k, 3))
+        dirs[..., 2] = 1.0
+        uvs = np.zeros((n, k, 2))
+        fids = np.full((n, k), -1)
+        valid = np.zeros((n, k), bool)
+        for ti, t in enumerate(tracks):
+            for j, (fid, uv) in enumerate(t):
+                c2w = self._poses[fid]
+                ray = np.array([(uv[0] - cam.cx) / cam.fx, (uv[1] - cam.cy) / cam.fy, 1.0])
+                centres[ti, j] = c2w[:3, 3]
+                dirs[ti, j] = c2w[:3, :3] @ ray
+                uvs[ti, j] = uv
+                fids[ti, j] = fid
+                valid[ti, j] = True
+        x = triangulate_rays(centres, dirs, valid)
+        ok = np.isfinite(x).all(1)
+        xs = np.where(ok[:, None], x, 0.0)
+        # reprojection and cheirality in every view
+        rel = xs[:, None, :] - centres  # (n, k, 3) in world axes
+        r_t = np.stack([self._poses[f][:3, :3] if f >= 0 else np.eye(3) for f in fids.reshape(-1)]).reshape(n, k, 3, 3)
+        pc = np.einsum("nkji,nkj->nki", r_t, rel)  # world -> camera: R^T (x - c)
+        z = pc[..., 2]
+        front = (z > 1e-6) | ~valid
+        zs = np.where(z > 1e-6, z, 1.0)
+        proj = np.stack([cam.fx * pc[..., 0] / zs + cam.cx, cam.fy * pc[..., 1] / zs + cam.cy], -1)
+        err = np.linalg.norm(proj - uvs, axis=-1)
+        ok &= front.all(1) & np.where(valid, err < self._reproj, True).all(1)
+        # parallax: the widest angle between any two of the point's rays
+        u = rel / np.maximum(np.linalg.norm(rel, axis=-1, keepdims=True), 1e-12)
+        cos = np.einsum("nai,nbi->nab", u, u)
+        cos = np.where(valid[:, :, None] & valid[:, None, :], cos, 1.0)
+        par = np.degrees(np.arccos(np.clip(cos.min((1, 2)), -1.0, 1.0)))
+        ok &= par >= self.cfg.min_parallax_deg
+        if not ok.any():
+            return
+        base = len(self.points)
+        keep = np.flatnonzero(ok)
+        self.points = np.concatenate([self.points, x[keep]])
+        self.weights = np.concatenate([self.weights, np.minimum(1.0, par[keep] / self.cfg.full_weight_parallax_deg)])
+        for j, ti in enumerate(keep):
+            for fid, uv in tracks[ti]:
+                idx, pix = self._frame_obs.setdefault(fid, ([], []))
+                idx.append(base + j)
+                pix.append(uv)
+
+
+def aabb_from_points(points: np.ndarray, centres: Optional[np.ndarray] = None, percentile: float = 1.0,
+                     margin: float = 0.1, rel_margin: float = 0.1) -> Optional[np.ndarray]:
+    """Box (2, 3) around scene points (robust ``percentile`` / ``100 - percentile`` per axis), the
+    camera ``centres`` and a margin of ``max(margin, rel_margin * extent)`` per axis; None for
+    fewer than 20 points."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(1)]
+    if len(pts) < 20:
+        return None
+    lo = np.percentile(pts, percentile, axis=0)
+    hi = np.percentile(pts, 100.0 - percentile, axis=0)
+    if centres is not None and len(centres):
+        c = np.asarray(centres, np.float64).reshape(-1, 3)
+        lo, hi = np.minimum(lo, c.min(0)), np.maximum(hi, c.max(0))
+    pad = np.maximum(margin, rel_margin * (hi - lo))
+    return np.stack([lo - pad, hi + pad])
