@@ -123,6 +123,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", default=None, help="YAML with mapper / tracker / launcher sections "
                                                   "(all keys: fmapping config dump up; default: none)")
     p.add_argument("--bbox", type=_bbox, default=None, help=BBOX_HELP)
+    p.add_argument("--view", default="auto", choices=["auto", "live", "save"],
+                   help="live: serve rerun's web viewer (URL printed) and still save OUT/run.rrd; save: only "
+                        "OUT/run.rrd; auto: live when there is a display and a terminal, else save (default: auto)")
+    p.add_argument("--view-port", type=int, default=9090, help="web viewer port of --view live (default: 9090)")
+    p.add_argument("--grpc-port", type=int, default=9876, help="rerun gRPC port of --view live (default: 9876)")
 
     p = sub.add_parser("demo", help="the multi-process system on the embedded synthetic default, with metrics")
     p.add_argument("--out", default="out/demo", help="output folder (the scene goes to OUT/scene)")

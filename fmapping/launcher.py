@@ -4,7 +4,8 @@ Starts, as separate OS processes (``sys.executable -m services...``):
 
 * ``services.mapper`` (first),
 * ``services.io record`` (OUT/record/: traj_<source>.txt, points.ply),
-* ``services.io view --save OUT/run.rrd`` (rerun recording),
+* ``services.io view --save OUT/run.rrd`` (rerun recording; ``--view live`` also serves rerun's
+  web viewer on ``--view-port`` / ``--grpc-port`` and prints its URL),
 * ``services.tracker`` when ``--poses tracker``,
 * ``services.io play`` last (it waits until the others report, then streams the data).
 
@@ -405,9 +406,11 @@ def run_up(args) -> int:
         procs["record"] = Proc("record", py + ["services.io", "record", "--out", str(out / "record"),
                                                "--source", record_src] + net(), out, env)
         later = [procs["record"]]
-        if opts.view:
-            procs["view"] = Proc("view", py + ["services.io", "view", "--save", str(out / "run.rrd")] + net(), out,
-                                 env)
+        view = view_mode(getattr(args, "view", None)) if opts.view else ""
+        if view:
+            uses_depth = bool(info["config"]["mapper"].get("use_depth"))
+            procs["view"] = Proc("view", py + ["services.io", "view"] + view_argv(out, view, args, uses_depth) + net(),
+                                 out, env)
             later.append(procs["view"])
         if poses == "tracker":
             targv = py + ["services.tracker", "--frontend", opts.tracker_frontend] + net() + threads
@@ -429,7 +432,13 @@ def run_up(args) -> int:
                           "--window", str(window), "--ack-from", "mapper", "--wait-for", ",".join(wait_for),
                           "--start-timeout", str(play_start_timeout)] + net()
         procs["play"] = Proc("play", play_argv, out, env)
-        return _monitor(procs, t0, timeout, out)
+        if view == "live":
+            print(f"fmapping up: live viewer at {live_url(args)} (the recording also goes to {out / 'run.rrd'})",
+                  flush=True)
+        rc = _monitor(procs, t0, timeout, out, serving=("view",) if view == "live" else ())
+        if view == "live" and rc == 0:
+            _linger(procs["view"], live_url(args))
+        return rc
     except KeyboardInterrupt:
         print("\nfmapping up: interrupted, stopping the services ...", file=sys.stderr, flush=True)
         return 130
@@ -460,7 +469,52 @@ def threading_main() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
-def _monitor(procs: dict[str, Proc], t0: float, timeout: Optional[float], out: Path) -> int:
+def view_mode(requested: Optional[str]) -> str:
+    """``--view``: live (serve rerun's web viewer and save OUT/run.rrd) or save (only the file);
+    auto (the CLI's default) is live when someone can look: a display and a terminal. None (a
+    caller without the option, e.g. ``fmapping demo``) is save."""
+    if requested in ("live", "save"):
+        return requested
+    if requested is None:
+        return "save"
+    if requested != "auto":
+        raise ValueError(f"--view must be auto, live or save, got {requested!r}")
+    display = os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    return "live" if display and sys.stdout.isatty() else "save"
+
+
+def view_argv(out: Path, mode: str, args, uses_depth: bool) -> list[str]:
+    """The ``services.io view`` options of ``fmapping up``: always OUT/run.rrd, plus the live
+    viewer on the fixed ports of --view-port / --grpc-port; depth images only when the mapper
+    uses depth (an RGB-only run must not show the dataset's depth); the final map and mesh."""
+    argv = ["--save", str(out / "run.rrd"), "--final-outputs", str(out)]
+    if mode == "live":
+        argv += ["--serve", "--web-port", str(getattr(args, "view_port", None) or 9090),
+                 "--grpc-port", str(getattr(args, "grpc_port", None) or 9876)]
+    if uses_depth:
+        argv += ["--depth-every", "5"]
+    return argv
+
+
+def live_url(args) -> str:
+    grpc = getattr(args, "grpc_port", None) or 9876
+    return f"http://localhost:{getattr(args, 'view_port', None) or 9090}/?url=rerun+http://localhost:{grpc}/proxy"
+
+
+def _linger(view: Proc, url: str) -> None:
+    """After a live run: the viewer keeps serving until Ctrl-C when someone is at the terminal."""
+    if view.rc is not None or not sys.stdin.isatty():
+        return
+    print(f"fmapping up: the viewer keeps serving at {url}; Ctrl-C to stop it", flush=True)
+    try:
+        while view.rc is None:
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass
+
+
+def _monitor(procs: dict[str, Proc], t0: float, timeout: Optional[float], out: Path, serving: tuple = ()) -> int:
+    """Wait until every process has exited (those in ``serving``, a live viewer, may serve on)."""
     tty = sys.stdout.isatty()
     last_print = 0.0
     while True:
@@ -476,7 +530,7 @@ def _monitor(procs: dict[str, Proc], t0: float, timeout: Optional[float], out: P
             print(f"\nfmapping up: {name} exited with code {rc}; last log lines:\n{procs[name].tail()}",
                   file=sys.stderr, flush=True)
             return 1
-        if all(rc == 0 for rc in rcs.values()):
+        if all(rc == 0 for n, rc in rcs.items() if n not in serving):
             break
         if timeout is not None and now - t0 > timeout:
             print(f"\nfmapping up: timed out after {timeout:.0f} s", file=sys.stderr, flush=True)

@@ -2,15 +2,21 @@
 
 Entities (timeline ``frame`` = frame number):
 ``world/camera`` (pose of the primary source) with ``world/camera/image`` (pinhole, RGB)
-and ``world/camera/image/depth``; ``world/cams/<source>`` a frustum per pose source;
-``world/traj/<source>`` trajectories (tracked vs GT vs external); ``world/map/points``
-the map points; ``world/map/aabb`` the field's bounding box; ``status/<service>/...`` lag
-and queue counters as scalars.
+and ``world/camera/image/depth`` (only with ``--depth-every``: set it when the run uses depth;
+in an RGB-only run the frames may still carry the dataset's depth, which would mislead);
+``world/cams/<source>`` a frustum per pose source; ``world/traj/<source>`` trajectories
+(tracked vs GT vs external); ``world/keyframes`` the keyframes (positions, and a frustum each)
+as the services announce them in their status (counter ``last_keyframe``); ``world/map/points``
+the map points (every ``PointsSnapshot``); ``world/map/aabb`` the field's bounding box;
+``world/map/final`` and ``world/map/mesh`` the mapper's final map.ply / mesh.ply
+(``--final-outputs``); ``status/<service>/...`` lag and queue counters as scalars.
 
-Live: ``--serve`` (default without ``--save``) starts rerun's gRPC server and web viewer
-(``rr.serve_grpc`` + ``rr.serve_web_viewer``) and prints the address to open.
-``--save out.rrd`` writes a recording instead (open with ``rerun out.rrd``). The view
-stops like ``record``: after the end-of-sequence stop once ``--wait-done`` are done.
+Live: ``--serve`` (the default without ``--save``) hosts rerun's gRPC server (``--bind``,
+``--grpc-port``) and web viewer (``--web-port``) and prints the address to open; ``--save
+out.rrd`` writes a recording (open with ``rerun out.rrd``); both together do both (one
+recording stream, two sinks). The view stops like ``record``: after the end-of-sequence stop
+once ``--wait-done`` are done; when serving it then keeps serving until a signal
+(``--exit-at-end``: it exits).
 """
 from __future__ import annotations
 
@@ -25,16 +31,25 @@ from services.common import (Peers, Service, add_common_args, names, serve_until
                              stop_kind)
 
 SOURCE_COLORS = {"tracker": (230, 80, 40), "gt": (40, 200, 80), "external": (60, 120, 240)}
+KEYFRAME_COLOR = (250, 200, 40)
 
 
 def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    p.add_argument("--save", default=None, metavar="OUT.rrd", help="write a rerun recording instead of serving")
-    p.add_argument("--grpc-port", type=int, default=None, help="rerun gRPC port when serving (default rerun's 9876)")
-    p.add_argument("--web-port", type=int, default=None, help="web viewer port when serving (default rerun's 9090)")
-    p.add_argument("--open-browser", action="store_true")
+    p.add_argument("--save", default=None, metavar="OUT.rrd", help="write the recording to this file (default: none)")
+    p.add_argument("--serve", action="store_true",
+                   help="serve the gRPC server and the web viewer (also with --save; the default without it)")
+    p.add_argument("--bind", default="127.0.0.1",
+                   help="address the gRPC server listens on (0.0.0.0 in a container; default: %(default)s)")
+    p.add_argument("--grpc-port", type=int, default=9876, help="rerun gRPC port when serving (default: %(default)s)")
+    p.add_argument("--web-port", type=int, default=9090, help="web viewer port when serving (default: %(default)s)")
+    p.add_argument("--open-browser", action="store_true", help="open the web viewer in a browser")
     p.add_argument("--primary", default="auto", help="pose source that carries the camera image (auto: tracker > external > gt)")
     p.add_argument("--image-every", type=int, default=1, help="log every n-th RGB image (0 = none)")
-    p.add_argument("--depth-every", type=int, default=5, help="log every n-th depth image (0 = none)")
+    p.add_argument("--depth-every", type=int, default=0,
+                   help="log every n-th depth image of the frames (default 0 = none: only runs that use depth "
+                        "should show it)")
+    p.add_argument("--final-outputs", default=None, metavar="DIR",
+                   help="at the end also log DIR/map.ply and DIR/mesh.ply when the mapper wrote them (default: none)")
     p.add_argument("--jpeg-quality", type=int, default=85, help="compress logged RGB (0 = raw)")
     p.add_argument("--exit-at-end", action="store_true", help="when serving: exit at the end instead of serving on")
     p.add_argument("--wait-done", default="mapper")
@@ -47,17 +62,25 @@ class Viewer:
 
     PRIORITY = ("tracker", "external", "gt")
 
-    def __init__(self, rec, primary: str = "auto", image_every: int = 1, depth_every: int = 5, jpeg_quality: int = 85):
+    def __init__(self, rec, primary: str = "auto", image_every: int = 1, depth_every: int = 0, jpeg_quality: int = 85):
         import rerun as rr
 
         self.rr, self.rec = rr, rec
         self.primary = primary
         self.image_every, self.depth_every, self.jpeg_quality = image_every, depth_every, jpeg_quality
         self.traj: dict[str, list[np.ndarray]] = {}
+        self.poses: dict[str, dict[int, np.ndarray]] = {}  # newest c2w per source and frame (keyframes)
+        self.keyframes: list[int] = []
         self._camera: Optional[dict] = None
         self._traj_logged: dict[str, float] = {}
         self.frames = 0
         rec.log("world", rr.ViewCoordinates.RDF, static=True)
+
+    def logs_depth(self, f: P.Frame) -> bool:
+        """Whether frame ``f``'s depth is logged: only with ``depth_every`` (the run uses depth),
+        every ``depth_every``-th frame. The frames of an RGB-only run can carry the dataset's
+        ground-truth depth; showing it would suggest the system used or estimated it."""
+        return f.depth is not None and self.depth_every > 0 and self.frames % self.depth_every == 0
 
     def _primary_for(self, source: str) -> bool:
         if self.primary != "auto":
@@ -76,7 +99,7 @@ class Viewer:
         if self.image_every and self.frames % self.image_every == 0:
             img = rr.Image(f.rgb)
             self.rec.log("world/camera/image", img.compress(jpeg_quality=self.jpeg_quality) if self.jpeg_quality else img)
-        if f.depth is not None and self.depth_every and self.frames % self.depth_every == 0:
+        if self.logs_depth(f):
             self.rec.log("world/camera/image/depth", rr.DepthImage(f.depth, meter=1.0))
         self.frames += 1
 
@@ -84,6 +107,7 @@ class Viewer:
         rr = self.rr
         self.rec.set_time("frame", sequence=max(p.seq, 0))
         self.traj.setdefault(p.source, []).append(np.asarray(p.c2w[:3, 3], np.float32))
+        self.poses.setdefault(p.source, {})[p.seq] = np.array(p.c2w)
         tf = rr.Transform3D(translation=p.c2w[:3, 3], mat3x3=p.c2w[:3, :3])
         if self._primary_for(p.source):
             self.rec.log("world/camera", tf)
@@ -101,10 +125,13 @@ class Viewer:
             self._traj_logged[p.source] = now
 
     def log_trajectory(self, source: str) -> None:
-        pts = self.traj.get(source)
-        if pts and len(pts) > 1:
-            self.rec.log(f"world/traj/{source}", self.rr.LineStrips3D([np.stack(pts)], radii=0.005,
-                                                                       colors=[SOURCE_COLORS.get(source, (200, 200, 200))]))
+        """The trajectory of ``source`` in frame order, the newest pose of each frame (a tracker
+        re-sends the poses its bundle adjustment or a loop closure moved)."""
+        poses = self.poses.get(source, {})
+        if len(poses) > 1:
+            pts = np.stack([c2w[:3, 3] for _, c2w in sorted(poses.items())]).astype(np.float32)
+            color = SOURCE_COLORS.get(source, (200, 200, 200))
+            self.rec.log(f"world/traj/{source}", self.rr.LineStrips3D([pts], radii=0.005, colors=[color]))
 
     def on_points(self, s: P.PointsSnapshot) -> None:
         self.rec.set_time("frame", sequence=max(s.frame_seq, 0))
@@ -115,35 +142,111 @@ class Viewer:
         lo, hi = np.asarray(s.aabb[0], np.float32), np.asarray(s.aabb[1], np.float32)
         self.rec.log("world/map/aabb", self.rr.Boxes3D(mins=[lo], sizes=[hi - lo], colors=[(180, 180, 180)]))
 
+    def keyframe_pose(self, seq: int) -> Optional[np.ndarray]:
+        """The newest pose of frame ``seq`` from the first source that has one (primary order)."""
+        order = [self.primary] if self.primary != "auto" else []
+        for src in order + list(self.PRIORITY) + sorted(self.poses):
+            c2w = self.poses.get(src, {}).get(seq)
+            if c2w is not None:
+                return c2w
+        return None
+
+    def on_keyframe(self, seq: int) -> None:
+        """A new keyframe ``seq`` (announced by a status counter ``last_keyframe``), drawn at its
+        pose; one whose pose has not arrived yet is drawn when it is announced again."""
+        if seq in self.keyframes or self.keyframe_pose(seq) is None:
+            return
+        self.keyframes.append(seq)
+        self.log_keyframes([seq])
+
+    def log_keyframes(self, seqs) -> None:
+        """Frustums of keyframes ``seqs`` at their newest poses, and the positions of all keyframes."""
+        rr = self.rr
+        for seq in seqs:
+            c2w = self.keyframe_pose(seq)
+            self.rec.log(f"world/keyframes/kf{seq:06d}", rr.Transform3D(translation=c2w[:3, 3], mat3x3=c2w[:3, :3]),
+                         static=True)
+            if self._camera is not None:
+                c = self._camera
+                self.rec.log(f"world/keyframes/kf{seq:06d}/frustum",
+                             rr.Pinhole(focal_length=[c["fx"], c["fy"]], principal_point=[c["cx"], c["cy"]],
+                                        resolution=[c["width"], c["height"]], image_plane_distance=0.05,
+                                        color=KEYFRAME_COLOR), static=True)
+        if self.keyframes:
+            centres = np.asarray([self.keyframe_pose(k)[:3, 3] for k in self.keyframes], np.float32)
+            self.rec.log("world/keyframes", rr.Points3D(centres, radii=0.015, colors=[KEYFRAME_COLOR]))
+
     def on_status(self, st: P.Status) -> None:
+        kf = st.counters.get("last_keyframe")
+        if kf is not None and kf >= 0:
+            self.on_keyframe(int(kf))
         self.rec.log(f"status/{st.service}/lag", self.rr.Scalars(float(st.lag)))
         for k in ("frames_processed", "windows", "dropped_frames", "decode_errors"):
             if k in st.counters:
                 self.rec.log(f"status/{st.service}/{k}", self.rr.Scalars(float(st.counters[k])))
 
+    def log_final_outputs(self, folder, since: float = 0.0) -> list[str]:
+        """``folder``/map.ply as ``world/map/final`` and ``folder``/mesh.ply as ``world/map/mesh``, when
+        written at or after ``since`` (a ``time.time()``: an earlier run's files are not this run's).
+        Returns the entities logged."""
+        from pathlib import Path
+
+        from fmapping.ply import read_ply
+
+        logged = []
+        for name, entity in (("map.ply", "world/map/final"), ("mesh.ply", "world/map/mesh")):
+            path = Path(folder) / name
+            try:
+                if path.stat().st_mtime < since - 2.0:  # 2 s: coarse file-system timestamps
+                    continue
+                ply = read_ply(path)
+            except (OSError, ValueError):
+                continue
+            if ply.faces is not None and len(ply.faces):
+                self.rec.log(entity, self.rr.Mesh3D(vertex_positions=ply.points, triangle_indices=ply.faces,
+                                                    vertex_colors=ply.colors), static=True)
+            else:
+                self.rec.log(entity, self.rr.Points3D(ply.points, colors=ply.colors, radii=0.005), static=True)
+            logged.append(entity)
+        return logged
+
     def finish(self) -> None:
         for src in self.traj:
             self.log_trajectory(src)
+        self.log_keyframes(self.keyframes)  # their final (bundle-adjusted, loop-closed) poses
         self.rec.flush(timeout_sec=10.0)
 
 
+def serving(args) -> bool:
+    """Whether the view serves a live viewer: ``--serve``, or no ``--save``."""
+    return bool(args.serve or not args.save)
+
+
+def viewer_url(web_port: int, grpc_url: str) -> str:
+    return f"http://localhost:{web_port}/?url={grpc_url}"
+
+
 def open_recording(args):
-    """A RecordingStream that saves to ``--save`` or serves gRPC + the web viewer."""
+    """A RecordingStream with the sinks the options ask for: a file (``--save``), a gRPC server
+    with rerun's web viewer (``--serve``, or no ``--save``), or both."""
     import rerun as rr
 
     rec = rr.RecordingStream("fmapping")
+    sinks = []
+    if serving(args):
+        server = rr.GrpcServerSink(args.bind, args.grpc_port)
+        sinks.append(server)
     if args.save:
         from pathlib import Path
 
         Path(args.save).parent.mkdir(parents=True, exist_ok=True)
-        rec.save(args.save)
-    else:
-        kw = {} if args.grpc_port is None else {"grpc_port": args.grpc_port}
-        url = rec.serve_grpc(**kw)
-        wkw = {} if args.web_port is None else {"web_port": args.web_port}
-        rr.serve_web_viewer(connect_to=url, open_browser=args.open_browser, **wkw)
-        port = args.web_port or 9090
-        print(f"rerun viewer: http://localhost:{port}/?url={url}  (or native: rerun --connect {url})", flush=True)
+        sinks.append(rr.FileSink(args.save))
+    rec.set_sinks(*sinks)
+    if serving(args):
+        # the URL a browser opens: the web viewer connects back to the gRPC server
+        url = server.uri.replace("0.0.0.0", "localhost").replace("127.0.0.1", "localhost")
+        rr.serve_web_viewer(web_port=args.web_port, open_browser=args.open_browser, connect_to=url)
+        print(f"rerun viewer: {viewer_url(args.web_port, url)}  (or native: rerun --connect {url})", flush=True)
     return rec
 
 
@@ -180,6 +283,7 @@ def handle_message(svc: Service, view: Viewer, peers: Peers, channel: str, key: 
 
 
 def run(svc: Service, args, rec) -> int:
+    started = time.time()
     view = Viewer(rec, args.primary, args.image_every, args.depth_every, args.jpeg_quality)
     peers = Peers()
     wait_done = names(args.wait_done)
@@ -189,8 +293,10 @@ def run(svc: Service, args, rec) -> int:
     svc.start()
     serve_until_end(svc, peers, lambda ch, key, data: handle_message(svc, view, peers, ch, key, data, wait_done),
                     wait_done, args.final_timeout)
+    if args.final_outputs:
+        view.log_final_outputs(args.final_outputs, since=started)
     view.finish()
-    if not args.save and not args.exit_at_end and not svc.shutdown.requested:
+    if serving(args) and not args.exit_at_end and not svc.shutdown.requested:
         svc.log.info("sequence ended; still serving the viewer (Ctrl-C to quit)")
         while not svc.shutdown.wait(0.5):
             pass
