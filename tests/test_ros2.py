@@ -211,3 +211,55 @@ def test_bridge_service_publishes_a_pose_stamped_for_each_tracker_pose(zpair):
         back = C.pose_from_stamped(C.from_cdr(data, C.POSE_STAMPED), p.seq)
         np.testing.assert_allclose(back.c2w, p.c2w, atol=1e-9, rtol=0)
         assert back.timestamp == pytest.approx(p.timestamp, abs=1e-6)
+
+
+def test_bridge_service_turns_ros_images_into_frames(zpair):
+    """ROS side (peer ``b``) publishes CameraInfo + Image CDR on the bridge keys; the shell on
+    ``a`` publishes our Frames on fmapping/<ns>/frames."""
+    import zenoh
+    from service_helpers import wait_matching
+
+    from services.common import Service
+    from services.ros2.__main__ import build_parser, run
+
+    a, b, _ = zpair
+    keys = P.Keys("rosin")
+    frames, lock = [], threading.Lock()
+
+    def on_frame(s):
+        with lock:
+            frames.append(P.decode(s.payload.to_bytes(), P.Frame))
+
+    sub = b.declare_subscriber(keys.frames, on_frame)
+    args = build_parser().parse_args(["--ns", "rosin"])
+    svc = Service("ros2", args, capacities={"poses": 10, "points": 2, "camera_info": 4, "image": 16},
+                  session=a, keys=keys)
+    t = threading.Thread(target=run, args=(svc, args), daemon=True)
+    t.start()
+    block = zenoh.CongestionControl.BLOCK
+    pinfo = b.declare_publisher("camera/camera_info", congestion_control=block)
+    pimg = b.declare_publisher("camera/image_raw", congestion_control=block)
+    cam = {"fx": 30.0, "fy": 30.0, "cx": 16.0, "cy": 12.0, "width": 32, "height": 24}
+    rgb = np.random.default_rng(3).integers(0, 256, size=(24, 32, 3)).astype(np.uint8)
+    try:
+        wait_matching(pinfo, pimg, timeout=30)
+        pinfo.put(C.to_cdr(C.camera_info_msg(cam, 1.0), C.CAMERA_INFO))
+        time.sleep(0.2)  # the info first: an image before it is only counted
+        for i in range(3):
+            pimg.put(C.to_cdr(C.image_msg(rgb, 1.0 + i, encoding="bgr8"), C.IMAGE))
+        end = time.monotonic() + 30
+        while time.monotonic() < end:
+            with lock:
+                if len(frames) >= 3:
+                    break
+            time.sleep(0.02)
+    finally:
+        svc.shutdown.set("test")
+        t.join(timeout=10)
+        svc.close()
+        for d in (sub, pinfo, pimg):
+            d.undeclare()
+    assert [f.seq for f in frames] == [0, 1, 2]
+    assert [f.timestamp for f in frames] == pytest.approx([1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(frames[0].rgb, rgb)
+    assert frames[0].camera["fx"] == 30.0 and frames[0].camera["width"] == 32

@@ -20,6 +20,14 @@ import os
 from services.common import Service, add_common_args, run_main, service_parser, setup_logging
 
 
+def _env_domain() -> int:
+    """$ROS_DOMAIN_ID as ROS reads it (unset, empty or not a number: 0)."""
+    try:
+        return int(os.environ.get("ROS_DOMAIN_ID") or 0)
+    except ValueError:
+        return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from services.ros2 import Topics
     from services.ros2.convert import CAMERA_FRAME, DISTROS, WORLD_FRAME
@@ -32,7 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: %(default)s)")
     g.add_argument("--ros-prefix", default="", help="the ROS namespace zenoh-bridge-ros2dds runs with "
                                                     "(its 'namespace' setting), prepended to every key (default: none)")
-    g.add_argument("--domain", type=int, default=int(os.environ.get("ROS_DOMAIN_ID", "0") or 0),
+    g.add_argument("--domain", type=int, default=_env_domain(),
                    help="ROS domain id of rmw_zenoh keys (default: $ROS_DOMAIN_ID or 0)")
     g.add_argument("--distro", choices=DISTROS, default=None,
                    help="ROS 2 distro of the message definitions and type hashes (default: $ROS_DISTRO or jazzy)")
@@ -111,6 +119,12 @@ def run(svc: Service, args) -> int:
 def main(argv=None, session=None, keys=None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.log_level, "ros2")
+    try:
+        import rosbags  # noqa: F401 - the optional extra, checked before any session opens
+    except ImportError:
+        from services.ros2.convert import MISSING
+
+        raise ValueError(MISSING) from None
     svc = Service("ros2", args, capacities={"poses": 10_000, "points": 2, "camera_info": 4, "image": 4},
                   session=session, keys=keys)
     try:
