@@ -9,9 +9,13 @@ Starts, as separate OS processes (``sys.executable -m services...``):
 * ``services.tracker`` when ``--poses tracker``,
 * ``services.io play`` last (it waits until the others report, then streams the data).
 
-Networking is an explicit zenoh peer mesh on loopback: each process listens on a free
-``tcp/127.0.0.1:<port>`` and connects to every process started before it (multicast
-scouting off), in a namespace of its own (``fmapping/up<pid>/...``). Each process logs
+Networking is secure by default (:mod:`services.credentials`, docs/security.md): the launcher
+makes per-run credentials (a random password per role, files 0600 in OUT/secrets, deleted at
+the end) and starts a zenoh router (``services.router``) on a free loopback port that admits
+only those users and lets each role publish, subscribe and ask only its own keys; every
+service is a client of it, in a namespace of its own (``fmapping/up<pid>/...``). With
+``--insecure`` (local debugging) it is the old open peer mesh instead: each process listens
+on a free ``tcp/127.0.0.1:<port>`` and connects to every process started before it. Each process logs
 to OUT/logs/<name>.log and writes its status to OUT/status/<name>.json, which the launcher
 reads to show progress. At the end of the sequence play sends the end-of-sequence stop;
 the mapper runs its closing stage and writes OUT/map.ply, OUT/mesh.ply, OUT/traj.txt and
@@ -363,9 +367,16 @@ def run_up(args) -> int:
     mesh: list[str] = []  # endpoints of the processes started so far
     # optional: endpoints every service also connects to, e.g. a monitoring session (bench/system.py)
     extra_connect = [str(e) for e in (getattr(args, "connect_extra", None) or [])]
+    # secure by default: per-run credentials, a router with access control (services.credentials);
+    # a monitoring session joining the mesh (connect_extra) needs the old open mesh
+    insecure = bool(getattr(args, "insecure", False)) or bool(extra_connect)
+    creds = None  # services.credentials.RunCredentials of a secure run, made once the inputs are checked
 
-    def net() -> list[str]:
-        """Listen on a fresh loopback port and connect to every process started before (explicit mesh)."""
+    def net(role: str) -> list[str]:
+        """Secure: the client config of ``role`` (its credentials, the run's router). --insecure: listen
+        on a fresh loopback port and connect to every process started before (explicit mesh)."""
+        if creds is not None:
+            return ["--zenoh-config", str(creds.config(role)), "--ns", ns]
         ep = f"tcp/127.0.0.1:{free_port()}"
         peers = extra_connect + mesh
         argv = ["--listen", ep, "--ns", ns] + (["--connect", ",".join(peers)] if peers else [])
@@ -384,13 +395,18 @@ def run_up(args) -> int:
     mapper_cfg = with_user_box(mapper_cfg, getattr(args, "bbox", None), out)
     info = run_info(data, poses, mapper_cfg, tracker_cfg, opts)  # errors in data or configs: before any process
     started = time.time()
-    mapper_argv = py + ["services.mapper", "--poses", poses, "--out", str(out)] + net() + threads
+    if not insecure:
+        from services.credentials import make_run_credentials
+
+        creds = make_run_credentials(out / "secrets", f"tcp/127.0.0.1:{free_port()}", ns)
+    mapper_argv = py + ["services.mapper", "--poses", poses, "--out", str(out)] + net("mapper") + threads
     if poses == "tracker" and not mono:
         mapper_argv += ["--unposed-init", "yes"]  # the map tracker tracks only once the mapper has a map
     if mapper_cfg:
         mapper_argv += ["--config", str(mapper_cfg)]
     record_src = poses
     procs: dict[str, Proc] = {}
+    infra: dict[str, Proc] = {}  # the router of a secure run: started first, stopped last
     t0 = time.monotonic()
     old_handlers = {}
 
@@ -401,19 +417,25 @@ def run_up(args) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
             old_handlers[sig] = signal.signal(sig, on_signal)
     try:
+        if creds is not None:
+            infra["router"] = Proc("router", py + ["services.router", "--zenoh-config", str(creds.router_config)],
+                                   out, env)
+            _wait_ready([infra["router"]], opts.start_timeout)
+            print(f"fmapping up: secure run: router on {creds.endpoint}, per-run credentials in {creds.folder} "
+                  "(mode 0600), access control by role (--insecure: the open loopback mesh)", flush=True)
         procs["mapper"] = Proc("mapper", mapper_argv, out, env)
         _wait_ready([procs["mapper"]], opts.start_timeout)
         procs["record"] = Proc("record", py + ["services.io", "record", "--out", str(out / "record"),
-                                               "--source", record_src] + net(), out, env)
+                                               "--source", record_src] + net("record"), out, env)
         later = [procs["record"]]
         view = view_mode(getattr(args, "view", None)) if opts.view else ""
         if view:
             uses_depth = bool(info["config"]["mapper"].get("use_depth"))
-            procs["view"] = Proc("view", py + ["services.io", "view"] + view_argv(out, view, args, uses_depth) + net(),
-                                 out, env)
+            procs["view"] = Proc("view", py + ["services.io", "view"] + view_argv(out, view, args, uses_depth)
+                                 + net("view"), out, env)
             later.append(procs["view"])
         if poses == "tracker":
-            targv = py + ["services.tracker", "--frontend", opts.tracker_frontend] + net() + threads
+            targv = py + ["services.tracker", "--frontend", opts.tracker_frontend] + net("tracker") + threads
             if tracker_cfg:
                 targv += ["--config", str(tracker_cfg)]
             procs["tracker"] = Proc("tracker", targv, out, env)
@@ -425,17 +447,18 @@ def run_up(args) -> int:
             play_start_timeout = 3600.0
             print("fmapping up: waiting for an external pose producer, e.g.\n"
                   f"  {sys.executable} examples/publish_poses.py --traj TRAJ.txt --source {EXTERNAL_SOURCE} "
-                  f"--connect {mesh[0]} --ns {ns}",
+                  + (f"--zenoh-config {creds.config('external')} --ns {ns}" if creds is not None else
+                     f"--connect {mesh[0]} --ns {ns}"),
                   flush=True)
         window = max(opts.window, MONO_BOOTSTRAP_WINDOW) if mono else opts.window
         play_argv = py + ["services.io", "play", "--data", str(data), "--fps", str(args.fps or 0),
                           "--window", str(window), "--ack-from", "mapper", "--wait-for", ",".join(wait_for),
-                          "--start-timeout", str(play_start_timeout)] + net()
+                          "--start-timeout", str(play_start_timeout)] + net("play")
         procs["play"] = Proc("play", play_argv, out, env)
         if view == "live":
             print(f"fmapping up: live viewer at {live_url(args)} (the recording also goes to {out / 'run.rrd'})",
                   flush=True)
-        rc = _monitor(procs, t0, timeout, out, serving=("view",) if view == "live" else ())
+        rc = _monitor(procs, t0, timeout, out, serving=("view",) if view == "live" else (), infra=infra)
         if view == "live" and rc == 0:
             _linger(procs["view"], live_url(args))
         return rc
@@ -445,8 +468,11 @@ def run_up(args) -> int:
     finally:
         _stop_all(procs, opts.grace, first=("play", "tracker", "mapper", "record", "view"))
         add_run_info(out, info, since=started)  # the mapper has exited: its stats.json is final
-        for p in procs.values():
+        _stop_all(infra, opts.grace, first=("router",))  # after the services: they talk through it to the end
+        for p in (*procs.values(), *infra.values()):
             p.close()
+        if creds is not None:
+            creds.remove()  # per-run passwords: useless once the router is gone
         for sig, h in old_handlers.items():
             signal.signal(sig, h)
 
@@ -513,8 +539,10 @@ def _linger(view: Proc, url: str) -> None:
         pass
 
 
-def _monitor(procs: dict[str, Proc], t0: float, timeout: Optional[float], out: Path, serving: tuple = ()) -> int:
-    """Wait until every process has exited (those in ``serving``, a live viewer, may serve on)."""
+def _monitor(procs: dict[str, Proc], t0: float, timeout: Optional[float], out: Path, serving: tuple = (),
+             infra: Optional[dict] = None) -> int:
+    """Wait until every process has exited (those in ``serving``, a live viewer, may serve on); a process
+    of ``infra`` (the router) must stay up meanwhile."""
     tty = sys.stdout.isatty()
     last_print = 0.0
     while True:
@@ -525,9 +553,11 @@ def _monitor(procs: dict[str, Proc], t0: float, timeout: Optional[float], out: P
             last_print = now
         rcs = {n: p.rc for n, p in procs.items()}
         failed = {n: rc for n, rc in rcs.items() if rc not in (None, 0)}
+        failed.update({n: p.rc for n, p in (infra or {}).items() if p.rc is not None})
         if failed:
             name, rc = next(iter(failed.items()))
-            print(f"\nfmapping up: {name} exited with code {rc}; last log lines:\n{procs[name].tail()}",
+            tail = {**procs, **(infra or {})}[name].tail()
+            print(f"\nfmapping up: {name} exited with code {rc}; last log lines:\n{tail}",
                   file=sys.stderr, flush=True)
             return 1
         if all(rc == 0 for n, rc in rcs.items() if n not in serving):
