@@ -12,10 +12,11 @@ writes into ``args.out``:
   visible GT cloud (``meta["gt_visible_cloud"]``) - reconstruction metrics.
 
 Scene bounds: the config ``bbox`` (``--bbox``) when set, else the box of the back-projected
-depth (with ``--use-depth``), else (``bounds: points``, the default) the box of points
-triangulated from KLT tracks over all frames with the given poses
-(:mod:`fmapping.sparse_points`), else the view frusta of all given poses between ``near`` and
-``far``. Nothing the generator of a synthetic scene knows (its ``scene.json``) is used.
+depth (with ``--use-depth``), else (``bounds: points``, the default) the mapper's own: the box
+of the points it triangulates from KLT tracks with the given poses
+(:mod:`fmapping.sparse_points`), grown as they spread; else the view frusta of all given poses
+between ``near`` and ``far``. Nothing the generator of a synthetic scene knows (its
+``scene.json``) is used.
 """
 from __future__ import annotations
 
@@ -28,10 +29,9 @@ from typing import Optional
 
 import numpy as np
 
-from fmapping.cancel import Cancelled, StopFn, check_stop
+from fmapping.cancel import Cancelled, StopFn
 from fmapping.config import load_config, to_dict
 from fmapping.mapper import Mapper, MapperConfig, aabb_from_depth, aabb_from_poses
-from fmapping.sparse_points import TrackTriangulator, aabb_from_points
 
 log = logging.getLogger("fmapping.pipeline")
 
@@ -57,12 +57,11 @@ def _pose_source(ds, poses_arg: str) -> list:
     return [c2w[j] if j >= 0 else None for j in idx]
 
 
-def scene_aabb(ds, cfg: MapperConfig, poses: list, use_depth: Optional[bool] = None,
-               should_stop: StopFn = None) -> Optional[np.ndarray]:
-    """The mapper's box for ``ds`` with the given ``poses`` (None entries skipped): None when
-    ``cfg.bbox`` is set (the mapper takes it), else the dataset's depth (when ``use_depth``, default
-    ``cfg.use_depth``), else the points triangulated over every frame (``cfg.bounds == "points"``),
-    else the frusta of ``poses``."""
+def scene_aabb(ds, cfg: MapperConfig, poses: list, use_depth: Optional[bool] = None) -> Optional[np.ndarray]:
+    """The mapper's box for ``ds`` with the given ``poses`` (None entries skipped), or None when the
+    mapper decides it itself: ``cfg.bbox`` is set, or (``cfg.bounds == "points"``, the default) it
+    bounds the points it triangulates and grows the box with them. Else the dataset's depth (when
+    ``use_depth``, default ``cfg.use_depth``), else the frusta of all ``poses``."""
     use_depth = cfg.use_depth if use_depth is None else use_depth
     if cfg.bbox is not None:
         return None  # the mapper takes it from its config
@@ -73,20 +72,8 @@ def scene_aabb(ds, cfg: MapperConfig, poses: list, use_depth: Optional[bool] = N
         box = aabb_from_depth(np.stack([p for _, p in sel]), [ds[i].depth for i, _ in sel], ds.camera, cfg.bbox_margin)
         if box is not None:
             return box
-    centres = np.stack([p[:3, 3] for _, p in known])
     if cfg.bounds == "points":
-        tri = TrackTriangulator(ds.camera, cfg.sparse)
-        for i, p in known:
-            check_stop(should_stop, "scene box (triangulating tracks)")
-            tri.add(i, ds[i].rgb, p)
-        tri.flush()
-        box = aabb_from_points(tri.points, centres, margin=cfg.bbox_margin)
-        if box is not None:
-            log.info("scene box from %d triangulated points: min %s max %s", len(tri.points),
-                     np.round(box[0], 2).tolist(), np.round(box[1], 2).tolist())
-            return box
-        log.warning("too few triangulated points for a scene box: using the view frusta (near %.2f, far %.2f)",
-                    cfg.near, cfg.far)
+        return None
     return aabb_from_poses(np.stack([p for _, p in known]), ds.camera, cfg.near, cfg.far, cfg.bbox_margin)
 
 
@@ -238,10 +225,7 @@ def run_map(args, should_stop: StopFn = None) -> dict:
     ds = open_job_dataset(args)
     cfg = build_config(args)
     poses = _pose_source(ds, getattr(args, "poses", "gt"))
-    try:
-        aabb = scene_aabb(ds, cfg, poses, should_stop=should_stop)
-    except Cancelled:
-        aabb = None
+    aabb = scene_aabb(ds, cfg, poses)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     mapper = Mapper(cfg, ds.camera, aabb=aabb, should_stop=should_stop)
