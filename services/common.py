@@ -5,10 +5,13 @@ status counters and heartbeats, signal handling, and what the zenoh-free service
 Only ``services/`` imports zenoh; the library (``fmapping``) never does, and neither do the
 service cores (this module imports zenoh only when a session or config is made). Every service
 follows the same shape: zenoh callbacks do no work beyond copying the payload into a
-bounded :class:`Inbox` (drop-oldest, or thinned); one worker loop (the main thread) decodes with
-:mod:`fmapping.protocol`, calls the library and publishes results. A message that fails
-to decode is counted (``decode_errors``) and logged (rate limited); it never reaches the
-service's state.
+bounded :class:`Inbox` (drop-oldest, or thinned; bounded in items and in bytes), after
+checking it where the service asks for that (:meth:`Service.subscribe` with ``admit``: decoded
+and checked for plausibility in the callback, so that a bad message is never queued and never
+displaces a real one); one worker loop (the main thread) calls the library and publishes
+results. A message that fails to decode is counted (``decode_errors``) and logged (rate
+limited); it never reaches the service's state. Stop commands (the end of the sequence among
+them) have a queue of their own, ``end``, that neither data nor other commands can evict.
 
 Network defaults are explicit and container friendly: peer mode, multicast scouting off,
 loopback endpoints given on the command line (``--listen`` / ``--connect``), or a zenoh
@@ -38,6 +41,16 @@ if TYPE_CHECKING:
     import zenoh
 
 log = logging.getLogger("fmapping.services")
+
+MIB = 1024 * 1024
+# Plausibility of what an authenticated peer sends (it may still be buggy or compromised):
+MAX_SEQ_AHEAD = 10_000  # a frame / pose number this far beyond the newest frame seen is refused
+# A map version is bumped once per mapper update and every update but the closing one integrates
+# a new frame, so one mapper run has version <= frame_seq + 2; the slack covers resets and stops.
+VERSION_SLACK = 64
+DEFAULT_CHANNEL_BYTES = 64 * MIB  # an inbox channel's byte bound unless the service gives one
+END_CAPACITY = 8  # the stop queue: any one stop ends the run, a few are plenty
+EXIT_STALLED = 3  # exit code of a service that gave up waiting (the run cannot progress); 2 is bad input
 
 
 # ---------------------------------------------------------------------------- configuration
@@ -322,19 +335,38 @@ class ServiceCore:
         self.on_bad_input = on_bad_input
         self.last_error = ""
         self.camera_dict: Optional[dict] = None
+        self.newest_seq = -1  # the newest frame number the core took (the head of the stream)
+
+    @property
+    def ack(self) -> int:
+        return -1
 
     def handle(self, channel: str, data: bytes, key: str = "") -> list:
-        """Decode and :meth:`apply` one payload from ``channel``; one that fails to decode is
-        counted (``decode_errors``) and ignored."""
+        """:meth:`admit` and :meth:`apply` one payload from ``channel``."""
+        msg = self.admit(channel, data, key)
+        return [] if msg is None else self.apply(msg)
+
+    def admit(self, channel: str, data: bytes, key: str = "") -> Optional[P.Message]:
+        """The decoded message of ``data`` (the type ``channel`` carries) when it is plausible, else
+        None (counted: ``decode_errors``, ``rejected_seq``). Thread safe: the shell calls it in the
+        zenoh callback, before anything is queued, so a bad message never displaces a real one."""
         expect = self.CHANNELS.get(channel)
         if expect is None:
-            raise ValueError(f"{type(self).__name__}.handle: unknown channel {channel!r}")
+            raise ValueError(f"{type(self).__name__}.admit: unknown channel {channel!r}")
         try:
             msg = P.decode(data, expect)
         except P.ProtocolError as e:
             self.bad_input(f"{key or channel}: {e}", "decode_errors")
-            return []
-        return self.apply(msg)
+            return None
+        why = seq_problem(msg, max(self.newest_seq, self.ack))
+        if why:
+            self.bad_input(f"{key or channel}: {why}", "rejected_seq")
+            return None
+        return msg
+
+    def took_frame(self, seq: int) -> None:
+        """The core accepted frame ``seq``: the head of the stream moves (see :func:`seq_problem`)."""
+        self.newest_seq = max(self.newest_seq, int(seq))
 
     def apply(self, msg: P.Message) -> list:
         raise NotImplementedError
@@ -361,8 +393,43 @@ class ServiceCore:
         return self.camera_dict
 
 
+def seq_problem(msg: Any, head: int) -> str:
+    """Why a Frame or Pose number is implausible ('' when it is not): negative, or more than
+    :data:`MAX_SEQ_AHEAD` beyond ``head``, the newest frame seen (-1: none yet, then any number
+    starts the stream). A frame far ahead would move the acknowledgement past every real frame."""
+    if not isinstance(msg, (P.Frame, P.Pose)):
+        return ""
+    what = "frame" if isinstance(msg, P.Frame) else f"pose ({msg.source})"
+    if msg.seq < 0:
+        return f"{what} {msg.seq}: negative frame number"
+    if head >= 0 and msg.seq > head + MAX_SEQ_AHEAD:
+        return f"{what} {msg.seq}: more than {MAX_SEQ_AHEAD} beyond the newest frame {head}"
+    return ""
+
+
+def snapshot_problem(version: int, frame_seq: int, current: int, head: int) -> str:
+    """Why a map snapshot (``version``, newest integrated ``frame_seq``) is implausible after
+    version ``current`` with ``head`` the newest frame seen (-1: unknown); '' when it is not.
+    Versions never go back, grow by one per mapper update (at most :data:`VERSION_SLACK` beyond
+    the frames integrated), and the frame must not be far ahead of the stream: a forged version
+    10**9 would otherwise shadow every real snapshot for good."""
+    if version < current:
+        return f"version {version} is older than version {current}"
+    if version > max(frame_seq, 0) + VERSION_SLACK:
+        return f"version {version} cannot follow from frame {frame_seq} (one version per mapper update)"
+    if head >= 0 and frame_seq > head + MAX_SEQ_AHEAD:
+        return f"frame {frame_seq} is more than {MAX_SEQ_AHEAD} beyond the newest frame {head}"
+    return ""
+
+
 class Inbox:
     """Bounded channels between zenoh callbacks and the worker, drop-oldest per channel.
+
+    Every channel is bounded in items (``capacities``) and in bytes (``max_bytes``, default
+    :data:`DEFAULT_CHANNEL_BYTES`; an item's size is the ``nbytes`` given to :meth:`put`, by
+    default the length of the bytes it holds). A new item evicts older ones of its channel
+    until both bounds hold again; it is never evicted itself, so a channel holds at most its
+    byte bound or a single item, whichever is larger. Channels never evict each other's items.
 
     ``get`` serves channels in the priority order given at construction (e.g. control
     before poses before frames). Drops are counted as ``dropped_<channel>``.
@@ -373,37 +440,45 @@ class Inbox:
     subsampled stream rather than only the newest frames.
     """
 
-    def __init__(self, capacities: dict[str, int], counters: Optional[Counters] = None, thin: Sequence[str] = ()):
+    def __init__(self, capacities: dict[str, int], counters: Optional[Counters] = None, thin: Sequence[str] = (),
+                 max_bytes: Optional[dict[str, int]] = None):
         self._q = {name: collections.deque() for name in capacities}
         self._cap = dict(capacities)
+        self._max_bytes = {name: int((max_bytes or {}).get(name, DEFAULT_CHANNEL_BYTES)) for name in capacities}
+        self._sizes = {name: collections.deque() for name in capacities}  # bytes of each queued item
+        self._bytes = {name: 0 for name in capacities}
         self._thin = {name: collections.deque() for name in thin}  # arrival numbers of the thinned channels
         self._arrivals = 0
         self._cond = threading.Condition()
         self.counters = counters or Counters()
 
-    def put(self, channel: str, item: Any) -> bool:
-        """Append ``item``; returns False when an older item had to be dropped."""
+    def put(self, channel: str, item: Any, nbytes: Optional[int] = None) -> bool:
+        """Append ``item`` (``nbytes`` long, default :func:`item_bytes`); returns False when older
+        items had to be dropped."""
+        size = item_bytes(item) if nbytes is None else int(nbytes)
         with self._cond:
-            q = self._q[channel]
+            q, sizes = self._q[channel], self._sizes[channel]
             arr = self._thin.get(channel)
-            dropped = False
             if arr is not None:
                 self._arrivals += 1
                 arr.append(self._arrivals)
-                q.append(item)
-                if len(q) > self._cap[channel]:
-                    i = thin_victim(arr)
-                    del q[i], arr[i]
-                    dropped = True
-            else:
-                if len(q) >= self._cap[channel]:
-                    q.popleft()
-                    dropped = True
-                q.append(item)
+            q.append(item)
+            sizes.append(size)
+            self._bytes[channel] += size
+            dropped = 0
+            while len(q) > 1 and (len(q) > self._cap[channel] or self._bytes[channel] > self._max_bytes[channel]):
+                # the victim is never the new item: thin_victim keeps the newest, drop-oldest takes index 0
+                i = thin_victim(arr) if arr is not None else 0
+                del q[i]
+                if arr is not None:
+                    del arr[i]
+                self._bytes[channel] -= sizes[i]
+                del sizes[i]
+                dropped += 1
             self._cond.notify()
         self.counters.inc(f"received_{channel}")
         if dropped:
-            self.counters.inc(f"dropped_{channel}")
+            self.counters.inc(f"dropped_{channel}", dropped)
         return not dropped
 
     def get(self, timeout: Optional[float] = None) -> Optional[tuple[str, Any]]:
@@ -415,6 +490,7 @@ class Inbox:
                     if q:
                         if name in self._thin:
                             self._thin[name].popleft()
+                        self._bytes[name] -= self._sizes[name].popleft()
                         return name, q.popleft()
                 left = None if end is None else end - time.monotonic()
                 if left is not None and left <= 0:
@@ -425,10 +501,27 @@ class Inbox:
         with self._cond:
             return len(self._q[channel]) if channel else sum(len(q) for q in self._q.values())
 
+    def nbytes(self, channel: Optional[str] = None) -> int:
+        """Bytes queued in ``channel`` (all channels when None)."""
+        with self._cond:
+            return self._bytes[channel] if channel else sum(self._bytes.values())
+
+    def has(self, channel: str) -> bool:
+        return channel in self._q
+
     def clear(self) -> None:
         with self._cond:
-            for q in (*self._q.values(), *self._thin.values()):
+            for q in (*self._q.values(), *self._thin.values(), *self._sizes.values()):
                 q.clear()
+            for name in self._bytes:
+                self._bytes[name] = 0
+
+
+def item_bytes(item: Any) -> int:
+    """The size an inbox charges for ``item``: the bytes-like objects it is or holds (a tuple's
+    elements), 0 for anything else."""
+    parts = item if isinstance(item, tuple) else (item,)
+    return sum(len(x) for x in parts if isinstance(x, (bytes, bytearray, memoryview)))
 
 
 def thin_victim(arrivals: Sequence[int]) -> int:
@@ -546,12 +639,17 @@ class Service:
 
     def __init__(self, name: str, args, capacities: Optional[dict[str, int]] = None,
                  session: Optional[zenoh.Session] = None, keys: Optional[P.Keys] = None,
-                 install_signals: Optional[bool] = None, thin: Sequence[str] = ()):
+                 install_signals: Optional[bool] = None, thin: Sequence[str] = (),
+                 max_bytes: Optional[dict[str, int]] = None):
         self.name = name
         self.args = args
         self.status = StatusBoard(name)
         self.counters = self.status.counters
-        self.inbox = Inbox(capacities or {}, self.counters, thin)
+        capacities = dict(capacities or {})
+        if "control" in capacities and "end" not in capacities:
+            # stop commands (the end of the sequence) first, in a queue nothing else can evict
+            capacities = {"end": END_CAPACITY, **capacities}
+        self.inbox = Inbox(capacities, self.counters, thin, max_bytes)
         if install_signals is None:
             install_signals = session is None
         self.shutdown = Shutdown(install=install_signals, watch_parent=bool(getattr(args, "exit_with_parent", False)))
@@ -604,14 +702,36 @@ class Service:
         return st
 
     # -- subscribing
-    def subscribe(self, key: str, channel: str) -> None:
-        """Raw payloads on ``key`` go to inbox channel ``channel`` as (key, bytes)."""
+    def subscribe(self, key: str, channel, admit: Optional[Callable[[str, bytes], Any]] = None) -> None:
+        """Payloads on ``key`` go to inbox channel ``channel`` as (key, bytes); with ``admit``, as
+        (key, admit(key, bytes)) and only when that is not None: the check runs in the callback,
+        before queueing (``admit`` counts what it refuses). ``channel`` may be a function of the
+        admitted item naming the channel. The inbox charges the payload's size either way."""
         inbox = self.inbox
 
         def on_sample(sample) -> None:
-            inbox.put(channel, (str(sample.key_expr), payload_bytes(sample)))
+            k, data = str(sample.key_expr), payload_bytes(sample)
+            if admit is None:
+                inbox.put(channel, (k, data), nbytes=len(data))
+                return
+            try:
+                item = admit(k, data)
+            except Exception as e:  # never let a check's exception reach zenoh
+                self.counters.inc("callback_errors")
+                self.log.exception("check of a message on %s failed: %s", k, e)
+                return
+            if item is not None:
+                inbox.put(channel(item) if callable(channel) else channel, (k, item), nbytes=len(data))
 
         self._decls.append(self.session.declare_subscriber(key, on_sample))
+
+    def subscribe_control(self) -> None:
+        """Control messages, decoded and addressed-checked in the callback, as (key, Control): stop
+        commands (the end-of-sequence marker among them) to channel ``end``, the rest to
+        ``control``. Neither data nor a flood of other commands can evict a stop."""
+        end = "end" if self.inbox.has("end") else "control"
+        self.subscribe(self.keys.control, lambda ctl: end if ctl.command == "stop" else "control",
+                       admit=lambda key, data: self.control(data, key))
 
     def subscribe_callback(self, key: str, fn: Callable[[str, bytes], None]) -> None:
         def on_sample(sample) -> None:

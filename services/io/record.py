@@ -1,7 +1,11 @@
 """``io record``: write the trajectories and the latest map points to disk.
 
 Keeps every Pose it hears (per source, latest per frame number) and the newest
-PointsSnapshot. On the end-of-sequence stop it waits (``--final-timeout``) until the
+PointsSnapshot. It does not trust a peer blindly: a pose with a negative frame number or one
+far beyond the frames played (``services.common.MAX_SEQ_AHEAD``) is refused at once, and poses
+of frames that were never played (beyond the newest frame play reported, in its status or in
+the end-of-sequence stop) are left out of the files (``unplayed_poses``); a points snapshot
+must follow the last one plausibly (``services.common.snapshot_problem``). On the end-of-sequence stop it waits (``--final-timeout``) until the
 services in ``--wait-done`` report state ``done`` (so the mapper's final map is in),
 then writes and exits; on any other stop, SIGINT or SIGTERM it writes what it has.
 
@@ -19,8 +23,8 @@ import numpy as np
 from fmapping import protocol as P
 from fmapping.ply import write_ply
 from fmapping.trajectory import write_tum_trajectory  # imports torch: at start-up, not at the end
-from services.common import (Peers, Service, add_common_args, names, serve_until_end, service_parser, setup_logging,
-                             stop_kind, write_json_atomic)
+from services.common import (MIB, Peers, Service, add_common_args, names, seq_problem, serve_until_end,
+                             service_parser, setup_logging, snapshot_problem, stop_kind, write_json_atomic)
 
 
 def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -35,30 +39,58 @@ def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
 class Recorder:
     """Zenoh-free state of the recorder: feed it decoded messages, then :meth:`write`."""
 
-    def __init__(self, out, source: str = "tracker", max_poses: int = 1_000_000):
+    def __init__(self, out, source: str = "tracker", max_poses: int = 1_000_000, player: str = "play"):
         self.out = Path(out)
         self.source = source
         self.max_poses = max_poses
+        self.player = player  # the service whose frames the poses belong to
+        self.played = -1  # the newest frame number the player reported (-1: none seen, keep every pose)
         self.poses: dict[str, dict[int, tuple[float, np.ndarray]]] = {}
         self.points: Optional[P.PointsSnapshot] = None
+        self.rejected: dict[str, int] = {}  # reason -> count
+        self.last_rejection = ""
 
-    def on_pose(self, pose: P.Pose) -> None:
+    def _reject(self, counter: str, why: str) -> bool:
+        self.rejected[counter] = self.rejected.get(counter, 0) + 1
+        self.last_rejection = why
+        return False
+
+    def on_pose(self, pose: P.Pose) -> bool:
+        """Keep ``pose`` unless its frame number is implausible; False (counted) when refused."""
+        why = seq_problem(pose, self.played)
+        if why:
+            return self._reject("rejected_poses", why)
         d = self.poses.setdefault(pose.source, {})
         if len(d) >= self.max_poses and pose.seq not in d:
             d.pop(next(iter(d)))
         d[pose.seq] = (pose.timestamp, np.array(pose.c2w))
+        return True
 
-    def on_points(self, snap: P.PointsSnapshot) -> None:
-        if self.points is None or snap.version >= self.points.version:
-            self.points = snap
+    def on_played(self, seq: int) -> None:
+        """The player has sent frames up to ``seq`` (its status, or the end-of-sequence stop's last_seq)."""
+        self.played = max(self.played, int(seq))
+
+    def on_points(self, snap: P.PointsSnapshot) -> bool:
+        current = -1 if self.points is None else self.points.version
+        why = snapshot_problem(snap.version, snap.frame_seq, current, self.played)
+        if why:
+            return self._reject("rejected_points", f"points v{snap.version}: {why}")
+        self.points = snap
+        return True
+
+    def played_poses(self, d: dict) -> list[int]:
+        """Frame numbers of ``d`` that were played (all of them while no player was heard)."""
+        return sorted(s for s in d if self.played < 0 or s <= self.played)
 
     def write(self) -> dict:
         self.out.mkdir(parents=True, exist_ok=True)
         summary: dict = {"poses": {}, "points": 0, "files": []}
+        unplayed = 0
         for src, d in sorted(self.poses.items()):
-            if not d:
+            seqs = self.played_poses(d)
+            unplayed += len(d) - len(seqs)
+            if not seqs:
                 continue
-            seqs = sorted(d)
             ts = np.array([d[s][0] for s in seqs])
             c2w = np.stack([d[s][1] for s in seqs])
             path = write_tum_trajectory(self.out / f"traj_{src}.txt", ts, c2w)
@@ -71,6 +103,9 @@ class Recorder:
             summary["files"].append(str(path))
             summary["points"] = int(len(self.points.points))
             summary["points_version"] = int(self.points.version)
+        summary["unplayed_poses"] = unplayed
+        summary["played"] = self.played
+        summary["rejected"] = dict(self.rejected)
         write_json_atomic(self.out / "record.json", summary)
         return summary
 
@@ -81,37 +116,57 @@ def handle_message(svc: Service, rec: Recorder, peers: Peers, channel: str, key:
     counted (``decode_errors``, ``bad_input``) and changes nothing. Returns 'end' or 'stop' when the
     recording should finish."""
     if channel == "poses":
-        msg = svc.decode(data, P.Pose, key)
-        if msg is not None:
-            rec.on_pose(msg)
+        msg = _decoded(svc, data, P.Pose, key)
+        if msg is not None and _kept(svc, rec, rec.on_pose(msg)):
             svc.counters.inc(f"poses_{msg.source}")
             svc.status.update(frame_seq=msg.seq)
     elif channel == "points":
-        msg = svc.decode(data, P.PointsSnapshot, key)
-        if msg is not None:
-            rec.on_points(msg)
+        msg = _decoded(svc, data, P.PointsSnapshot, key)
+        if msg is not None and _kept(svc, rec, rec.on_points(msg)):
             svc.counters.set("points", len(msg.points))
     elif channel == "status":
-        msg = svc.decode(data, P.Status, key)
+        msg = _decoded(svc, data, P.Status, key)
         if msg is not None:
             peers.update(msg)
-    elif channel == "control":
-        msg = svc.control(data, key)
+            if msg.service == rec.player:
+                rec.on_played(msg.frame_seq)
+    elif channel in ("end", "control"):
+        msg = data if isinstance(data, P.Control) else svc.control(data, key)
         if msg is not None:
+            if msg.command == "stop" and msg.args.get("reason") == "end":
+                last = msg.args.get("last_seq")
+                if isinstance(last, int) and not isinstance(last, bool):
+                    rec.on_played(last)
             if msg.command == "save":
                 rec.write()
             return stop_kind(msg, wait_done)
     return None
 
 
+def _decoded(svc: Service, data, expect: type, key: str):
+    """``data`` when the subscription decoded it already (``admit``), else its decoded message or None."""
+    return data if isinstance(data, expect) else svc.decode(data, expect, key)
+
+
+def _kept(svc: Service, rec: Recorder, kept: bool) -> bool:
+    """Count and report a message the recorder refused (``bad_input`` and the reason's counter)."""
+    if not kept:
+        for name, n in rec.rejected.items():
+            svc.counters.set(name, n)
+        svc.counters.inc("bad_input")
+        svc.report_bad_input(rec.last_rejection)
+    return kept
+
+
 def run(svc: Service, args) -> int:
     rec = Recorder(args.out, args.source, args.max_poses)
     peers = Peers()
     wait_done = names(args.wait_done)
-    svc.subscribe(svc.keys.poses(), "poses")
-    svc.subscribe(svc.keys.points, "points")
-    svc.subscribe(svc.keys.status(), "status")
-    svc.subscribe(svc.keys.control, "control")
+    # decoded before queueing: a bad message is counted in the callback and never displaces a real one
+    for key, channel, expect in ((svc.keys.poses(), "poses", P.Pose), (svc.keys.points, "points", P.PointsSnapshot),
+                                 (svc.keys.status(), "status", P.Status)):
+        svc.subscribe(key, channel, admit=lambda k, d, expect=expect: svc.decode(d, expect, k))
+    svc.subscribe_control()
     svc.start()
     serve_until_end(svc, peers, lambda ch, key, data: handle_message(svc, rec, peers, ch, key, data, wait_done),
                     wait_done, args.final_timeout)
@@ -123,6 +178,8 @@ def run(svc: Service, args) -> int:
 def main(argv=None, session=None, keys=None) -> int:
     args = add_args(service_parser("services.io record", __doc__)).parse_args(argv)
     setup_logging(args.log_level, "record")
-    with Service("record", args, capacities={"control": 64, "status": 256, "poses": 100_000, "points": 2},
+    # bounded in items and bytes: ~75 MiB at most (the stop queue "end" comes first, see services.common)
+    with Service("record", args, capacities={"end": 8, "control": 64, "status": 256, "poses": 100_000, "points": 2},
+                 max_bytes={"end": MIB, "control": MIB, "status": 4 * MIB, "poses": 32 * MIB, "points": 64 * MIB},
                  session=session, keys=keys) as svc:
         return run(svc, args)

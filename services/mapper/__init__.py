@@ -160,6 +160,7 @@ class MapperCore(ServiceCore):
         if f.seq <= self.last_seq or f.seq in self.frames:
             self.counters.inc("stale_frames")
             return []
+        self.took_frame(f.seq)
         self.frames[f.seq] = f
         self._arrived[f.seq] = self.clock()
         self._newest_ts = max(self._newest_ts, f.timestamp)

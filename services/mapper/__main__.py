@@ -17,8 +17,8 @@ import logging
 import time
 
 from fmapping.cancel import Cancelled
-from services.common import (Service, add_common_args, available_cpus, run_main, service_parser, set_torch_threads,
-                             setup_logging)
+from services.common import (MIB, Service, add_common_args, available_cpus, run_main, service_parser,
+                             set_torch_threads, setup_logging)
 from services.mapper import POSE_SOURCES, MapperCore, MapperServiceOptions, load_mapper_config
 
 
@@ -52,6 +52,12 @@ def build_parser() -> argparse.ArgumentParser:
     return add_common_args(p)
 
 
+# inbox bounds per channel, items and bytes (the stop queue "end" comes first, see services.common):
+# at most ~266 MiB queued, whatever arrives; 32 frames of 1280x720 RGB-D are ~205 MB
+CAPACITIES = {"end": 8, "control": 64, "poses": 8192, "frames": 32}
+MAX_BYTES = {"end": 1 * MIB, "control": 1 * MIB, "poses": 8 * MIB, "frames": 256 * MIB}
+
+
 def main(argv=None, session=None, keys=None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.log_level, "mapper")
@@ -70,7 +76,7 @@ def main(argv=None, session=None, keys=None) -> int:
         anchor_source=args.anchor, anchor_frames=args.anchor_frames, pose_timeout=args.pose_timeout,
     ).validate()
     # frames: thinned when full (a long update then leaves an evenly subsampled backlog, not the newest only)
-    with Service("mapper", args, capacities={"control": 64, "poses": 8192, "frames": 32}, session=session,
+    with Service("mapper", args, capacities=CAPACITIES, max_bytes=MAX_BYTES, session=session,
                  keys=keys, thin=("frames",)) as svc:
         return serve(svc, cfg, opts, args)
 
@@ -82,11 +88,12 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args) -> int:
     if opts.resume and core.load_checkpoint():
         svc.log.info("resumed from %s at frame %d (field version %d)", core.resumed_from, core.ack, core.version)
     keys = svc.keys
-    svc.subscribe(keys.control, "control")
-    svc.subscribe(keys.poses(opts.pose_source), "poses")
+    # checked before queueing: a bad or implausible message never displaces a real one
+    svc.subscribe_control()
+    svc.subscribe(keys.poses(opts.pose_source), "poses", admit=lambda k, d: core.admit("poses", d, k))
     if opts.anchor_source:
-        svc.subscribe(keys.poses(opts.anchor_source), "poses")
-    svc.subscribe(keys.frames, "frames")
+        svc.subscribe(keys.poses(opts.anchor_source), "poses", admit=lambda k, d: core.admit("poses", d, k))
+    svc.subscribe(keys.frames, "frames", admit=lambda k, d: core.admit("frames", d, k))
     svc.queryable(keys.latest, lambda: core.latest_field_bytes)
     channels = {"field": keys.field, "points": keys.points}
 
@@ -112,17 +119,11 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args) -> int:
         item = svc.inbox.get(timeout=0.1)
         try:
             if item is not None:
-                channel, (key, data) = item
-                if channel == "control":
-                    ctl = svc.control(data, key)
-                    if ctl is None:
-                        continue
-                    if ctl.command == "stop":
-                        report("finishing")
-                        svc.publish_status()
-                    publish(core.apply(ctl))
-                else:
-                    publish(core.handle(channel, data, key))
+                channel, (key, msg) = item  # decoded and checked already (admit)
+                if channel in ("end", "control") and msg.command == "stop":
+                    report("finishing")
+                    svc.publish_status()
+                publish(core.apply(msg))
             publish(core.tick())
         except Cancelled:
             interrupted = core.interrupted = True

@@ -54,7 +54,7 @@ from typing import Any, NamedTuple, Optional
 import numpy as np
 
 from fmapping import protocol as P
-from services.common import ServiceCore, rigid_pose, usable_camera
+from services.common import ServiceCore, rigid_pose, snapshot_problem, usable_camera
 
 log = logging.getLogger("fmapping.tracker")
 
@@ -163,6 +163,7 @@ class TrackerCore(ServiceCore):
         if f.seq <= self.last_seq or f.seq in self.waiting:
             self.counters.inc("stale_frames")
             return []
+        self.took_frame(f.seq)
         self.counters.inc("frames_received")
         self.waiting[f.seq] = f
         if len(self.waiting) > 1 and f.seq < next(reversed(self.waiting)):
@@ -176,6 +177,10 @@ class TrackerCore(ServiceCore):
     def on_field(self, s: P.FieldSnapshot) -> list[Output]:
         if s.version <= self.version and self.field is not None:
             self.counters.inc("stale_snapshots")
+            return []
+        why = snapshot_problem(s.version, s.frame_seq, self.version, max(self.newest_seq, self.ack))
+        if why:  # e.g. a version 10**9 would shadow every real snapshot after it
+            self.bad_input(f"field snapshot v{s.version}: {why}", "rejected_snapshots")
             return []
         try:  # everything is checked and built before any state changes
             field, render_cfg, cam = self._from_snapshot(s)

@@ -11,8 +11,8 @@ import argparse
 import logging
 
 from fmapping.runtime import limit_blas_threads, retain_freed_memory
-from services.common import (Service, add_common_args, query_latest, run_main, service_parser, set_torch_threads,
-                             setup_logging)
+from services.common import (MIB, Service, add_common_args, query_latest, run_main, service_parser,
+                             set_torch_threads, setup_logging)
 from services.tracker import TrackerCore, TrackerServiceOptions, load_tracker_config
 
 
@@ -31,6 +31,12 @@ def build_parser() -> argparse.ArgumentParser:
     return add_common_args(p)
 
 
+# inbox bounds per channel, items and bytes (the stop queue "end" comes first, see services.common):
+# at most ~426 MiB queued; the field channel holds one snapshot of the largest size the protocol allows
+CAPACITIES = {"end": 8, "control": 64, "field": 2, "poses": 8192, "frames": 64}
+MAX_BYTES = {"end": 1 * MIB, "control": 1 * MIB, "field": 160 * MIB, "poses": 8 * MIB, "frames": 256 * MIB}
+
+
 def main(argv=None, session=None, keys=None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.log_level, "tracker")
@@ -41,20 +47,20 @@ def main(argv=None, session=None, keys=None) -> int:
     cfg = load_tracker_config(args.config)
     opts = TrackerServiceOptions(max_buffer=args.max_buffer, use_depth=args.use_depth, frontend=args.frontend,
                                  anchor_source=args.anchor).validate()
-    with Service("tracker", args, capacities={"control": 64, "field": 2, "poses": 8192, "frames": 64},
-                 session=session, keys=keys) as svc:
+    with Service("tracker", args, capacities=CAPACITIES, max_bytes=MAX_BYTES, session=session, keys=keys) as svc:
         return serve(svc, cfg, opts, args)
 
 
 def serve(svc: Service, cfg, opts: TrackerServiceOptions, args) -> int:
     core = TrackerCore(cfg, opts, counters=svc.counters, on_bad_input=svc.report_bad_input)
     keys = svc.keys
-    svc.subscribe(keys.control, "control")
-    svc.subscribe(keys.field, "field")
-    svc.subscribe(keys.poses("mapper"), "poses")
+    # checked before queueing: a bad or implausible message never displaces a real one
+    svc.subscribe_control()
+    svc.subscribe(keys.field, "field", admit=lambda k, d: core.admit("field", d, k))
+    svc.subscribe(keys.poses("mapper"), "poses", admit=lambda k, d: core.admit("poses", d, k))
     if opts.frontend == "mono" and opts.anchor_source:
-        svc.subscribe(keys.poses(opts.anchor_source), "poses")
-    svc.subscribe(keys.frames, "frames")
+        svc.subscribe(keys.poses(opts.anchor_source), "poses", admit=lambda k, d: core.admit("poses", d, k))
+    svc.subscribe(keys.frames, "frames", admit=lambda k, d: core.admit("frames", d, k))
     svc.start()
     latest = query_latest(svc.session, keys.latest, timeout=args.query_timeout)
     if latest is not None:
@@ -65,17 +71,14 @@ def serve(svc: Service, cfg, opts: TrackerServiceOptions, args) -> int:
         item = svc.inbox.get(timeout=0.1)
         if item is None:
             continue
-        channel, (key, data) = item
+        channel, (key, msg) = item  # decoded and checked already (admit)
         try:
-            if channel == "control":
-                ctl = svc.control(data, key)
-                if ctl is None:
-                    continue
-                if ctl.command == "stop":
+            if channel in ("end", "control"):
+                if msg.command == "stop":
                     stop = True
-                core.apply(ctl)
+                core.apply(msg)
                 continue
-            for _, pose in core.handle(channel, data, key):
+            for _, pose in core.apply(msg):
                 svc.publish(keys.poses("tracker"), pose)
         except Exception as e:  # a library failure: report it, keep serving
             svc.counters.inc("errors")

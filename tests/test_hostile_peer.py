@@ -1,0 +1,190 @@
+"""A hostile (or buggy) peer against the service shells and cores, in-process: nothing a flood can
+evict, messages checked before they are queued, payloads not trusted blindly.
+
+The shells run on a fake session whose subscriptions the test calls directly, the way zenoh
+calls them, so a flood of 10,000 messages is delivered deterministically and quickly.
+"""
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import pytest
+
+from fmapping import protocol as P
+from service_helpers import feed, gt_messages, small_cfg
+from services import common as C
+
+KEYS = P.Keys("hostile")
+
+
+class FakeSession:
+    """A zenoh session stand-in: remembers each subscription's callback (``deliver`` calls them)."""
+
+    class _Decl:
+        def undeclare(self):
+            pass
+
+        def put(self, data):
+            pass
+
+    class _Sample:
+        def __init__(self, key: str, data: bytes):
+            self.key_expr, self._data = key, data
+
+        @property
+        def payload(self):
+            return self
+
+        def to_bytes(self) -> bytes:
+            return self._data
+
+    def __init__(self):
+        self.subs: dict[str, list] = {}
+
+    def declare_subscriber(self, key, cb):
+        self.subs.setdefault(key, []).append(cb)
+        return self._Decl()
+
+    def declare_publisher(self, key, **kw):
+        return self._Decl()
+
+    def declare_queryable(self, key, cb):
+        return self._Decl()
+
+    def deliver(self, key: str, data: bytes, sub_key: str = None) -> None:
+        for cb in self.subs[sub_key or key]:
+            cb(self._Sample(key, data))
+
+
+def service(name: str, capacities: dict, max_bytes: dict = None, thin=()) -> tuple[C.Service, FakeSession]:
+    s = FakeSession()
+    args = C.add_common_args(argparse.ArgumentParser()).parse_args([])
+    return C.Service(name, args, capacities=capacities, max_bytes=max_bytes, session=s, keys=KEYS,
+                     install_signals=False, thin=thin), s
+
+
+def drain(inbox: C.Inbox) -> list:
+    out = []
+    while (item := inbox.get(timeout=0)) is not None:
+        out.append(item)
+    return out
+
+
+# ---------------------------------------------------------------------------- inbox bounds
+@pytest.mark.parametrize("thin", [(), ("frames",)])
+def test_inbox_is_bounded_in_bytes_as_well_as_items(thin):
+    box = C.Inbox({"control": 4, "frames": 1000}, thin=thin, max_bytes={"frames": 10_000})
+    for i in range(100):
+        box.put("frames", (f"k{i}", bytes(3000)))
+        assert box.nbytes("frames") <= 10_000 and box.size("frames") <= 3
+    assert box.counters.get("dropped_frames") == 97
+    # one item larger than the bound stays alone (never evicted by itself); other channels untouched
+    box.put("control", b"stop")
+    box.put("frames", ("big", bytes(50_000)))
+    assert box.size("frames") == 1 and box.nbytes("frames") == 50_000 and box.size("control") == 1
+    got = drain(box)
+    assert got[0] == ("control", b"stop") and got[1][1][0] == "big" and box.nbytes() == 0
+
+
+def test_flooded_controls_never_evict_the_end_of_sequence_stop():
+    """The issue's run: 1,005 hostile controls pushed the real end-of-run stop out of the control
+    queue. Stops now have their own queue, and undecodable ones are never queued."""
+    svc, s = service("mapper", {"control": 64, "poses": 8192, "frames": 32})
+    svc.subscribe_control()
+    s.deliver(KEYS.control, P.encode(P.Control("stop", {"reason": "end", "last_seq": 13})))
+    rng = np.random.default_rng(0)
+    for i in range(10_000):
+        kind = i % 3
+        data = (rng.bytes(int(rng.integers(1, 200))) if kind == 0 else
+                P.encode(P.Control("save")) if kind == 1 else P.encode(P.Control("pause", {"target": "tracker"})))
+        s.deliver(KEYS.control, data)
+    c = svc.counters.snapshot()
+    assert c["decode_errors"] == 3334 and c["received_end"] == 1
+    assert c["received_control"] == 3333 and c["dropped_control"] == 3333 - 64  # addressed to others: not queued
+    first = svc.inbox.get(timeout=0)
+    assert first[0] == "end" and first[1][1].command == "stop" and first[1][1].args["last_seq"] == 13
+
+
+def test_hostile_frames_are_refused_before_queueing_and_never_displace_real_ones(dataset):
+    """Undecodable frames, frames with an implausible number and frames far too large for the
+    stream reach neither the inbox nor the core; the 32 real frames all stay queued."""
+    from services.mapper import MapperCore
+    from services.mapper.__main__ import CAPACITIES, MAX_BYTES
+
+    svc, s = service("mapper", CAPACITIES, MAX_BYTES, thin=("frames",))
+    core = MapperCore(small_cfg(), counters=svc.counters)
+    svc.subscribe(KEYS.frames, "frames", admit=lambda k, d: core.admit("frames", d, k))
+    svc.subscribe(KEYS.poses("gt"), "poses", admit=lambda k, d: core.admit("poses", d, k))
+    real = [gt_messages(dataset, i % len(dataset)) for i in range(2)]
+    pose, frame = real[0]
+    s.deliver(KEYS.poses("gt"), pose)
+    s.deliver(KEYS.frames, frame)
+    core.took_frame(0)  # the worker took frame 0: the head of the stream
+    ahead = P.frame_from_dataset(dataset[1], seq=10 ** 9)
+    hostile = [b"\x00" * 100, P.encode(ahead), P.encode(P.Pose(seq=-1, timestamp=0.0, c2w=np.eye(4), source="gt")),
+               P.encode(P.Pose(seq=10 ** 9, timestamp=0.0, c2w=np.eye(4), source="gt"))]
+    for i in range(4000):
+        s.deliver(KEYS.frames if i % 4 < 2 else KEYS.poses("gt"), hostile[i % 4])
+    c = svc.counters.snapshot()
+    assert c["decode_errors"] == 1000 and c["rejected_seq"] == 3000 and c["bad_input"] == 4000
+    assert c.get("dropped_frames", 0) == 0 and svc.inbox.size("frames") == 1 and svc.inbox.size("poses") == 1
+    for i in range(1, 33):
+        f = P.frame_from_dataset(dataset[i % len(dataset)], seq=i)
+        s.deliver(KEYS.frames, P.encode(f))
+    assert svc.inbox.size("frames") == 32 and svc.counters.get("dropped_frames") == 1  # 33 real frames, 32 places
+
+
+def test_mapper_core_refuses_implausible_frame_numbers_and_keeps_its_acknowledgement(dataset):
+    from services.mapper import MapperCore
+
+    core = MapperCore(small_cfg())
+    feed(core, dataset, range(6))
+    ack = core.ack
+    assert ack == 5
+    pose, frame = gt_messages(dataset, 6)
+    far = P.frame_from_dataset(dataset[6], seq=ack + C.MAX_SEQ_AHEAD + 1)
+    assert core.handle("frames", P.encode(far)) == []
+    assert core.handle("poses", P.encode(P.Pose(seq=far.seq, timestamp=0.0, c2w=np.eye(4), source="gt"))) == []
+    assert core.handle("poses", P.encode(P.Pose(seq=-1, timestamp=0.0, c2w=np.eye(4), source="gt"))) == []
+    assert core.counters.get("rejected_seq") == 3 and core.ack == ack and far.seq not in core.frames
+    feed(core, dataset, [6, 7])  # the real stream goes on
+    assert core.ack == 7
+    # a frame within reach of the stream is taken (a gap in the numbering is not an attack)
+    near = P.frame_from_dataset(dataset[8], seq=ack + 1000)
+    core.handle("frames", P.encode(near))
+    assert near.seq in core.frames or core.ack == near.seq
+
+
+def test_tracker_core_refuses_a_snapshot_version_that_cannot_be():
+    from services.tracker import TrackerCore
+
+    core = TrackerCore()
+    forged = P.FieldSnapshot(version=10 ** 9, kind="cp", config={}, aabb=np.array([[0, 0, 0], [1, 1, 1]], np.float64),
+                             arrays={}, frame_seq=5)
+    assert core.handle("field", P.encode(forged)) == []
+    assert core.counters.get("rejected_snapshots") == 1 and core.version == 0 and "cannot follow" in core.last_error
+    assert C.snapshot_problem(7, 5, 3, 10) == "" and C.snapshot_problem(2, 5, 3, 10) != ""
+    assert C.snapshot_problem(7, 5 + C.MAX_SEQ_AHEAD * 2, 3, 10) != ""
+
+
+def test_recorder_ignores_unplayed_and_negative_poses_and_implausible_points(tmp_path):
+    from fmapping.trajectory import read_tum_trajectory
+    from services.io.record import Recorder
+
+    rec = Recorder(tmp_path, source="tracker")
+    for s in range(10):
+        assert rec.on_pose(P.Pose(seq=s, timestamp=float(s), c2w=np.eye(4), source="tracker"))
+    rec.on_played(7)  # play reported frames 0..7
+    assert not rec.on_pose(P.Pose(seq=-1, timestamp=0.0, c2w=np.eye(4), source="tracker"))  # the issue's ATE 12.67 cm
+    assert not rec.on_pose(P.Pose(seq=7 + C.MAX_SEQ_AHEAD + 1, timestamp=0.0, c2w=np.eye(4), source="tracker"))
+    pts = np.zeros((4, 3), np.float32)
+    cols = np.zeros((4, 3), np.uint8)
+    assert rec.on_points(P.PointsSnapshot(version=3, points=pts, colors=cols, frame_seq=7))
+    assert not rec.on_points(P.PointsSnapshot(version=10 ** 9, points=pts[:1], colors=cols[:1], frame_seq=7))
+    assert not rec.on_points(P.PointsSnapshot(version=2, points=pts[:1], colors=cols[:1], frame_seq=7))
+    assert rec.on_points(P.PointsSnapshot(version=4, points=pts[:2], colors=cols[:2], frame_seq=9))
+    summary = rec.write()
+    ts, _ = read_tum_trajectory(tmp_path / "traj.txt")
+    assert list(ts) == list(range(8)) and summary["unplayed_poses"] == 2  # frames 8, 9 were never played
+    assert summary["points"] == 2 and summary["rejected"] == {"rejected_poses": 2, "rejected_points": 2}
