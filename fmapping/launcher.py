@@ -61,6 +61,9 @@ SECTIONS = ("mapper", "tracker", "launcher")
 # stalls playback until the mapper's pose timeout. Both inboxes hold more (mapper 32, tracker 64).
 MONO_BOOTSTRAP_WINDOW = 20
 EXTERNAL_SOURCE = "external"  # pose source and status name of an external producer (poses/external, status/external)
+# A service's status file is rewritten by its heartbeat thread every 0.5 s, even during a long update:
+# one unchanged for this long belongs to a hung process, and the run is stopped with its name.
+HEARTBEAT_TIMEOUT = 120.0
 
 
 @dataclass
@@ -300,6 +303,13 @@ class Proc:
         except (OSError, ValueError):
             return {}
 
+    def silent_for(self) -> float:
+        """Seconds since the status file last changed (0 before it exists: start-up has its own timeout)."""
+        try:
+            return max(0.0, time.time() - self.status_file.stat().st_mtime)
+        except OSError:
+            return 0.0
+
     def signal(self, sig: int) -> None:
         if self.popen.poll() is None:
             try:
@@ -400,12 +410,17 @@ def run_up(args) -> int:
 
         creds = make_run_credentials(out / "secrets", f"tcp/127.0.0.1:{free_port()}", ns)
     mapper_argv = py + ["services.mapper", "--poses", poses, "--out", str(out)] + net("mapper") + threads
+    # the services give up on their first message after a while (default 900 s); play waits up to an
+    # hour for an external producer, so they wait longer then
+    first_wait = ["--first-message-timeout", "4500"] if poses == "external" else []
+    mapper_argv += first_wait
     if poses == "tracker" and not mono:
         mapper_argv += ["--unposed-init", "yes"]  # the map tracker tracks only once the mapper has a map
     if mapper_cfg:
         mapper_argv += ["--config", str(mapper_cfg)]
     record_src = poses
     procs: dict[str, Proc] = {}
+    errors: list[str] = []  # why the run failed (the first reason), for OUT/up.json
     infra: dict[str, Proc] = {}  # the router of a secure run: started first, stopped last
     t0 = time.monotonic()
     old_handlers = {}
@@ -426,7 +441,7 @@ def run_up(args) -> int:
         procs["mapper"] = Proc("mapper", mapper_argv, out, env)
         _wait_ready([procs["mapper"]], opts.start_timeout)
         procs["record"] = Proc("record", py + ["services.io", "record", "--out", str(out / "record"),
-                                               "--source", record_src] + net("record"), out, env)
+                                               "--source", record_src] + net("record") + first_wait, out, env)
         later = [procs["record"]]
         view = view_mode(getattr(args, "view", None)) if opts.view else ""
         if view:
@@ -458,16 +473,24 @@ def run_up(args) -> int:
         if view == "live":
             print(f"fmapping up: live viewer at {live_url(args)} (the recording also goes to {out / 'run.rrd'})",
                   flush=True)
-        rc = _monitor(procs, t0, timeout, out, serving=("view",) if view == "live" else (), infra=infra)
+        rc = _monitor(procs, t0, timeout, out, serving=("view",) if view == "live" else (), infra=infra,
+                      errors=errors)
         if view == "live" and rc == 0:
             _linger(procs["view"], live_url(args))
         return rc
     except KeyboardInterrupt:
         print("\nfmapping up: interrupted, stopping the services ...", file=sys.stderr, flush=True)
+        errors.append("interrupted")
         return 130
+    except RuntimeError as e:  # a service did not start: one message naming it, no traceback
+        print(f"fmapping up: {e}", file=sys.stderr, flush=True)
+        errors.append(str(e))
+        return 1
     finally:
         _stop_all(procs, opts.grace, first=("play", "tracker", "mapper", "record", "view"))
         add_run_info(out, info, since=started)  # the mapper has exited: its stats.json is final
+        if errors:  # a failed run still says what it wrote and why it ended
+            _write_summary(procs, t0, out, error=errors[0])
         _stop_all(infra, opts.grace, first=("router",))  # after the services: they talk through it to the end
         for p in (*procs.values(), *infra.values()):
             p.close()
@@ -540,9 +563,17 @@ def _linger(view: Proc, url: str) -> None:
 
 
 def _monitor(procs: dict[str, Proc], t0: float, timeout: Optional[float], out: Path, serving: tuple = (),
-             infra: Optional[dict] = None) -> int:
+             infra: Optional[dict] = None, errors: Optional[list] = None) -> int:
     """Wait until every process has exited (those in ``serving``, a live viewer, may serve on); a process
-    of ``infra`` (the router) must stay up meanwhile."""
+    of ``infra`` (the router) must stay up meanwhile, and every running service must keep beating
+    (:data:`HEARTBEAT_TIMEOUT`). A failure is printed and appended to ``errors``; returns 1 then."""
+    errors = errors if errors is not None else []
+
+    def fail(msg: str) -> int:
+        print(f"\nfmapping up: {msg}", file=sys.stderr, flush=True)
+        errors.append(msg.split("\n", 1)[0])
+        return 1
+
     tty = sys.stdout.isatty()
     last_print = 0.0
     while True:
@@ -557,25 +588,19 @@ def _monitor(procs: dict[str, Proc], t0: float, timeout: Optional[float], out: P
         if failed:
             name, rc = next(iter(failed.items()))
             tail = {**procs, **(infra or {})}[name].tail()
-            print(f"\nfmapping up: {name} exited with code {rc}; last log lines:\n{tail}",
-                  file=sys.stderr, flush=True)
-            return 1
+            return fail(f"{name} exited with code {rc}; last log lines:\n{tail}")
         if all(rc == 0 for n, rc in rcs.items() if n not in serving):
             break
         if timeout is not None and now - t0 > timeout:
-            print(f"\nfmapping up: timed out after {timeout:.0f} s", file=sys.stderr, flush=True)
-            return 1
+            return fail(f"timed out after {timeout:.0f} s")
+        silent = [p.name for p in procs.values() if p.rc is None and p.silent_for() > HEARTBEAT_TIMEOUT]
+        if silent:
+            return fail(f"no heartbeat from {', '.join(silent)} for {HEARTBEAT_TIMEOUT:.0f} s (a hung process; "
+                        f"see {out / 'logs'})")
         time.sleep(0.2)
     if tty:
         print()
-    summary = {"seconds": round(time.monotonic() - t0, 1), "outputs": {}}
-    for name in ("map.ply", "mesh.ply", "traj.txt", "stats.json", "run.rrd", "record/traj.txt", "record/points.ply"):
-        p = out / name
-        if p.exists():
-            summary["outputs"][name] = str(p)
-    summary["status"] = {n: {"state": p.status().get("state"), "frame_seq": p.status().get("frame_seq"),
-                             "counters": p.status().get("counters", {})} for n, p in procs.items()}
-    (out / "up.json").write_text(json.dumps(summary, indent=1, default=str))
+    summary = _write_summary(procs, t0, out)
     print("fmapping up: done in %.1f s; outputs: %s" % (summary["seconds"], ", ".join(summary["outputs"].values())),
           flush=True)
     missing = [n for n in ("map.ply", "traj.txt") if n not in summary["outputs"]]
@@ -583,6 +608,23 @@ def _monitor(procs: dict[str, Proc], t0: float, timeout: Optional[float], out: P
         print(f"fmapping up: missing outputs {missing} (see {out / 'logs'})", file=sys.stderr, flush=True)
         return 1
     return 0
+
+
+def _write_summary(procs: dict[str, Proc], t0: float, out: Path, error: str = "") -> dict:
+    """OUT/up.json: seconds, the outputs present, every service's last status, and ``error`` (why
+    the run failed) when there is one."""
+    summary: dict = {"seconds": round(time.monotonic() - t0, 1), "outputs": {}}
+    if error:
+        summary["error"] = error
+    for name in ("map.ply", "mesh.ply", "traj.txt", "stats.json", "run.rrd", "record/traj.txt", "record/points.ply"):
+        p = out / name
+        if p.exists():
+            summary["outputs"][name] = str(p)
+    summary["status"] = {n: {"state": p.status().get("state"), "frame_seq": p.status().get("frame_seq"),
+                             "counters": p.status().get("counters", {}), "rc": p.rc,
+                             "last_error": p.status().get("last_error", "")} for n, p in procs.items()}
+    (out / "up.json").write_text(json.dumps(summary, indent=1, default=str))
+    return summary
 
 
 def _stop_all(procs: dict[str, Proc], grace: float, first: tuple) -> None:

@@ -568,6 +568,35 @@ class Shutdown:
         return self.event.wait(timeout) or self.requested
 
 
+FIRST_MESSAGE_TIMEOUT = 900.0  # default of --first-message-timeout (fmapping up passes its own)
+
+
+def add_first_message_arg(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--first-message-timeout", type=float, default=FIRST_MESSAGE_TIMEOUT,
+                   help=f"seconds to wait for the first {what}; then the service writes what it has and exits "
+                        f"with code {EXIT_STALLED}, naming what it waited for (0 = wait forever)")
+
+
+class FirstMessage:
+    """A service waiting for its first data message: :meth:`expired` once ``timeout`` seconds
+    (0: never) have passed since start without :meth:`see`. A run whose producer never came
+    then ends with an error that names what was awaited instead of hanging."""
+
+    def __init__(self, timeout: float, what: str):
+        self.timeout, self.what = float(timeout or 0), what
+        self.t0 = time.monotonic()
+        self.seen = False
+
+    def see(self) -> None:
+        self.seen = True
+
+    def expired(self) -> bool:
+        return not self.seen and self.timeout > 0 and time.monotonic() - self.t0 > self.timeout
+
+    def message(self) -> str:
+        return f"no {self.what} within {self.timeout:g} s of start (is the player running?)"
+
+
 class RateLimitedLog:
     """Log the first ``first`` events, then every ``every``-th (fuzzed inputs must not flood logs)."""
 
@@ -779,6 +808,14 @@ class Service:
         ctl = self.decode(data, P.Control, where)
         return ctl if ctl is not None and self.addressed(ctl) else None
 
+    def give_up(self, why: str) -> int:
+        """The run cannot progress: log ``why``, report it (state error, ``stalls``); returns the exit code."""
+        self.counters.inc("stalls")
+        self.status.update(state="error")
+        self.status.error(why)
+        self.log.error("giving up: %s", why)
+        return EXIT_STALLED
+
     def report_bad_input(self, text: str) -> None:
         """A service core's ``on_bad_input``: the status's last error and a rate-limited warning."""
         self.status.error(text)
@@ -887,18 +924,27 @@ def stop_kind(ctl: P.Control, wait_done: Sequence[str]) -> Optional[str]:
 
 
 def serve_until_end(svc: Service, peers: Peers, handle: Callable[[str, str, bytes], Optional[str]],
-                    wait_done: Sequence[str], final_timeout: float) -> None:
+                    wait_done: Sequence[str], final_timeout: float, first: Optional[FirstMessage] = None,
+                    data_channels: Sequence[str] = ()) -> int:
     """The worker loop of a consumer that ends with the sequence (``io record``, ``io view``).
 
     Every inbox item goes to ``handle(channel, key, data)`` until it returns 'stop' or a signal
     comes; once it returns 'end' (:func:`stop_kind`) the loop ends when every service in
     ``wait_done`` reports state done (or error) in ``peers``, or after ``final_timeout`` seconds.
-    What is still queued then (e.g. the final points published just before 'done') is handled too."""
+    What is still queued then (e.g. the final points published just before 'done') is handled too.
+    With ``first``, nothing on ``data_channels`` before it expires ends the loop too: returns
+    :data:`EXIT_STALLED` then (:meth:`Service.give_up`), else 0."""
     end_deadline: Optional[float] = None
+    code = 0
     while not svc.shutdown.requested:
         item = svc.inbox.get(timeout=0.1)
+        if item is None and first is not None and first.expired():
+            code = svc.give_up(first.message())
+            break
         if item is not None:
             channel, (key, data) = item
+            if first is not None and channel in data_channels:
+                first.see()
             what = handle(channel, key, data)
             if what == "stop":
                 break
@@ -914,3 +960,4 @@ def serve_until_end(svc: Service, peers: Peers, handle: Callable[[str, str, byte
     while (item := svc.inbox.get(timeout=0)) is not None:
         channel, (key, data) = item
         handle(channel, key, data)
+    return code

@@ -22,11 +22,15 @@ class FakeSession:
     """A zenoh session stand-in: remembers each subscription's callback (``deliver`` calls them)."""
 
     class _Decl:
+        def __init__(self, sink=None):
+            self.sink = sink
+
         def undeclare(self):
             pass
 
         def put(self, data):
-            pass
+            if self.sink is not None:
+                self.sink.append(data)
 
     class _Sample:
         def __init__(self, key: str, data: bytes):
@@ -41,13 +45,14 @@ class FakeSession:
 
     def __init__(self):
         self.subs: dict[str, list] = {}
+        self.published: dict[str, list] = {}
 
     def declare_subscriber(self, key, cb):
         self.subs.setdefault(key, []).append(cb)
         return self._Decl()
 
     def declare_publisher(self, key, **kw):
-        return self._Decl()
+        return self._Decl(self.published.setdefault(key, []))
 
     def declare_queryable(self, key, cb):
         return self._Decl()
@@ -188,3 +193,72 @@ def test_recorder_ignores_unplayed_and_negative_poses_and_implausible_points(tmp
     ts, _ = read_tum_trajectory(tmp_path / "traj.txt")
     assert list(ts) == list(range(8)) and summary["unplayed_poses"] == 2  # frames 8, 9 were never played
     assert summary["points"] == 2 and summary["rejected"] == {"rejected_poses": 2, "rejected_points": 2}
+
+
+# ---------------------------------------------------------------------------- every wait has a timeout
+def test_play_gives_up_when_a_live_consumer_stops_acknowledging(dataset):
+    """The issue's run: the mapper's acknowledgement stuck at 185 of 200 while its heartbeat went
+    on, and play waited forever. Now play names the consumer and the frame, still sends the
+    end-of-sequence stop (the consumers write their outputs) and exits with code 3."""
+    import threading
+    import time
+
+    from services.io import play
+
+    s = FakeSession()
+    args = play.add_args(argparse.ArgumentParser()).parse_args(
+        ["--data", "x", "--window", "2", "--stall-timeout", "1.0", "--start-timeout", "5"])
+    svc = C.Service("play", args, session=s, keys=KEYS, install_signals=False)
+    player = play.Player(svc, dataset, args)
+    stop = threading.Event()
+
+    def mapper_beats():  # alive, but its acknowledgement stays at frame 1
+        k = 0
+        while not stop.wait(0.05):
+            k += 1
+            st = P.Status(service="mapper", seq=k, time=time.time(), frame_seq=1)
+            s.deliver(KEYS.status("mapper"), P.encode(st), sub_key=KEYS.status())
+
+    t = threading.Thread(target=mapper_beats, daemon=True)
+    t.start()
+    try:
+        t0 = time.monotonic()
+        assert player.run() == C.EXIT_STALLED
+        assert time.monotonic() - t0 < 10
+    finally:
+        stop.set()
+        t.join()
+    assert player.seq == 3  # window 2 beyond the stuck acknowledgement
+    assert "no acknowledgement from mapper beyond frame 1" in svc.status.last_error
+    end = P.decode(s.published[KEYS.control][-1], P.Control)
+    assert end.command == "stop" and end.args == {"reason": "end", "last_seq": 3}
+    assert svc.counters.get("stalls") == 1
+
+
+def test_mapper_without_any_frame_gives_up_with_its_outputs_written(tmp_path):
+    from services.mapper.__main__ import main
+
+    out = tmp_path / "m"
+    code = main(["--poses", "gt", "--out", str(out), "--first-message-timeout", "0.5", "--status-interval", "0.1",
+                 "--status-file", str(tmp_path / "status.json")], session=FakeSession(), keys=KEYS)
+    assert code == C.EXIT_STALLED
+    import json
+
+    status = json.loads((tmp_path / "status.json").read_text())
+    assert "no frame on fmapping/hostile/frames within 0.5 s" in status["last_error"]
+    assert (out / "stats.json").is_file()
+
+
+def test_record_without_any_pose_gives_up(tmp_path):
+    from services.io import record
+
+    args = record.add_args(argparse.ArgumentParser()).parse_args(
+        ["--out", str(tmp_path / "r"), "--first-message-timeout", "0.3"])
+    s = FakeSession()
+    with C.Service("record", args, capacities={"control": 4, "status": 4, "poses": 4, "points": 2}, session=s,
+                   keys=KEYS, install_signals=False) as svc:
+        for _ in range(3):  # heartbeats of others are not what it waits for
+            svc.inbox.put("status", (KEYS.status("mapper"), P.encode(P.Status(service="mapper"))))
+        assert record.run(svc, args) == C.EXIT_STALLED
+        assert "no pose on fmapping/hostile/poses/*" in svc.status.last_error
+    assert (tmp_path / "r" / "record.json").is_file()

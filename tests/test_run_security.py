@@ -163,3 +163,74 @@ def test_roles_may_do_only_their_own_part(run):
             if r.ok is not None:
                 answers.add(r.ok.payload.to_bytes())
     assert answers == {b"MAP"}
+
+
+@pytest.mark.slow
+def test_a_running_fmapping_up_ignores_outsiders_and_roles_overstepping(scene, tmp_path):
+    """End to end: while `fmapping up` runs, a session without the run's credentials cannot join,
+    and one holding the tracker's credentials floods `control` with stop / reset and forges GT
+    poses: the ACL drops all of it, the run completes with every frame and its outputs."""
+    import subprocess
+    import sys
+    import threading
+
+    import numpy as np
+    import yaml
+
+    from fmapping.trajectory import read_tum_trajectory
+    from service_helpers import ROOT, SMALL_MAPPER, subprocess_env
+
+    cfg = tmp_path / "up.yaml"
+    cfg.write_text(yaml.safe_dump({"mapper": SMALL_MAPPER, "launcher": {"timeout": 240, "threads": 1,
+                                                                         "view": False}}))
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "fmapping.cli", "up", "--data", str(scene), "--poses", "gt",
+                             "--out", str(out), "--config", str(cfg)], cwd=ROOT, env=subprocess_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    stop = threading.Event()
+    sent = {"n": 0}
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / "status" / "router.json").is_file():
+            assert proc.poll() is None and time.monotonic() < deadline, "the router never came up"
+            time.sleep(0.05)
+        conf_path = out / "secrets" / "tracker.json5"
+        tracker_conf = json.loads(conf_path.read_text())
+        endpoint = tracker_conf["connect"]["endpoints"][0]
+        assert endpoint.startswith("tcp/127.0.0.1:") and stat.S_IMODE(os.stat(conf_path).st_mode) == 0o600
+        keys = P.Keys(f"up{proc.pid}")  # the launcher's namespace: up<its pid>
+        with pytest.raises(zenoh.ZError):
+            zenoh.open(intruder_conf(endpoint))
+        tracker = zenoh.open(zenoh.Config.from_file(str(conf_path)))
+        peer = zenoh.open(intruder_conf(endpoint, mode="peer"))
+        forged = [P.encode(P.Control("stop")), P.encode(P.Control("reset")),
+                  P.encode(P.Pose(seq=3, timestamp=0.0, c2w=np.eye(4), source="gt"))]
+
+        def flood():
+            while not stop.wait(0.01):
+                for s in (tracker, peer):
+                    s.put(keys.control, forged[sent["n"] % 2])
+                    s.put(keys.poses("gt"), forged[2])
+                sent["n"] += 1
+
+        t = threading.Thread(target=flood, daemon=True)
+        t.start()
+        assert ask(peer, keys.latest, timeout=1.0) is None
+        rc = proc.wait(timeout=280)
+        stop.set()
+        t.join(timeout=5)
+        log = proc.stdout.read()
+        tracker.close()
+        peer.close()
+    finally:
+        stop.set()
+        if proc.poll() is None:
+            proc.kill()
+    assert rc == 0, log[-3000:]
+    assert sent["n"] > 10
+    ts, c2w = read_tum_trajectory(out / "traj.txt")
+    assert len(ts) == 14  # every frame mapped: no stop ended the run early, no reset wiped it
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["counters"].get("control_stop") == 1 and "control_reset" not in stats["counters"]
+    assert not (out / "secrets").exists()  # the per-run passwords are gone with the run
+

@@ -5,7 +5,10 @@ drop the oldest when they fall behind). With ``--fps 0`` (default) playback is a
 as the consumers keep up: at most ``--window`` frames are in flight beyond the newest
 frame acknowledged (``Status.frame_seq``) by every service in ``--ack-from``, however long
 they take while their heartbeat goes on; a consumer silent for ``--ack-timeout`` seconds
-no longer holds playback back (``ack_timeouts``).
+no longer holds playback back (``ack_timeouts``). A consumer that is alive but whose
+acknowledgement has not moved for ``--stall-timeout`` seconds means the run can no longer
+progress: play then logs which consumer it waited for and at which frame, sends the
+end-of-sequence stop (so that the consumers write their outputs) and exits with code 3.
 
 Before the first frame it waits (``--start-timeout``) until every service in
 ``--wait-for`` has published a status, so nobody misses the start. A consumer that joins
@@ -29,7 +32,7 @@ from typing import Optional
 import numpy as np
 
 from fmapping import protocol as P
-from services.common import Peers, Service, add_common_args, names, service_parser
+from services.common import EXIT_STALLED, Peers, Service, add_common_args, names, service_parser
 
 
 def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -44,12 +47,19 @@ def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--wait-for", default=None, help="services that must be up before the first frame (default: --ack-from)")
     p.add_argument("--start-timeout", type=float, default=60.0)
     p.add_argument("--ack-timeout", type=float, default=15.0, help="seconds without a status after which a consumer no longer paces playback")
+    p.add_argument("--stall-timeout", type=float, default=300.0,
+                   help="seconds a live consumer's acknowledgement may stay put while frames wait for it; then "
+                        "playback ends with an error (exit code 3) (0 = wait forever)")
     p.add_argument("--loop", action="store_true", help="start over at the end (frame numbers keep increasing)")
     p.add_argument("--paused", action="store_true", help="wait for a 'start' or 'resume' control before playing")
     p.add_argument("--no-gt", action="store_true", help="do not publish ground-truth poses on poses/gt")
     p.add_argument("--no-depth", action="store_true", help="do not send depth even when the dataset has it")
     p.add_argument("--no-end-stop", action="store_true", help="do not send the end-of-sequence stop")
     return add_common_args(p)
+
+
+class Stalled(RuntimeError):
+    """The consumers are alive but their acknowledgement no longer moves (the message says who, where)."""
 
 
 class Player:
@@ -132,16 +142,32 @@ class Player:
             return m is None or self.seq - m < window or self._halt() or self.paused.is_set() \
                 or self.reset_requested.is_set()
 
-        # no deadline while the consumers are alive (a long mapping window is not a failure);
-        # a consumer whose status is older than --ack-timeout drops out of _min_ack
+        # a consumer whose status is older than --ack-timeout drops out of _min_ack; one alive whose
+        # acknowledgement does not move for --stall-timeout ends the run (Stalled)
         before = [n for n in self.ack_from if self._live(n)]
-        while not self.peers.wait(ready, 1.0, self.svc.shutdown.event):
-            if self._halt():
-                return
+        self._wait_acks(ready)
         gone = [n for n in before if not self._live(n)]
         if gone:
             self.svc.counters.inc("ack_timeouts")
             self.svc.log.warning("no status from %s for %.0f s: no longer waiting for it", gone, self.args.ack_timeout)
+
+    def _wait_acks(self, ready) -> None:
+        """Block until ``ready(peers)``; raise :class:`Stalled` when the slowest live consumer's
+        acknowledgement has not moved for ``--stall-timeout`` seconds (a long mapping window moves
+        it eventually; a consumer that lost frames or hangs never does)."""
+        last, since = self._min_ack(), time.monotonic()
+        limit = float(getattr(self.args, "stall_timeout", 0) or 0)
+        while not self.peers.wait(ready, 1.0, self.svc.shutdown.event):
+            if self._halt():
+                return
+            m = self._min_ack()
+            if m != last:
+                last, since = m, time.monotonic()
+            elif limit > 0 and time.monotonic() - since > limit:
+                slow = [n for n in self.ack_from
+                        if self._live(n) and max(self.peers.acked(n), self.floor.get(n, -1)) == m]
+                raise Stalled(f"no acknowledgement from {', '.join(slow) or '?'} beyond frame {m} for {limit:.0f} s "
+                              f"(frames sent up to {self.seq})")
 
     def _wait_unpaused(self) -> None:
         if self.paused.is_set():
@@ -163,6 +189,19 @@ class Player:
         if not self.wait_for_peers():
             return 0
         svc.status.update(state="running")
+        try:
+            return self._play(n, live)
+        except Stalled as e:
+            svc.counters.inc("stalls")
+            svc.status.update(state="error")
+            svc.status.error(f"stalled: {e}")
+            svc.log.error("the run cannot progress: %s; sending the end-of-sequence stop and giving up", e)
+            if not a.no_end_stop:  # the consumers still finish and write what they have
+                svc.publish(svc.keys.control, P.Control("stop", {"reason": "end", "last_seq": int(self.seq)}))
+            return EXIT_STALLED
+
+    def _play(self, n: Optional[int], live: bool) -> int:
+        svc, ds, a = self.svc, self.ds, self.args
         period = 0.0
         if not live:
             ts = np.asarray(ds.timestamps, np.float64)
@@ -227,9 +266,7 @@ class Player:
             return 0
         if self.ack_from and self.seq >= 0:
             svc.status.update(state="finishing")
-            while not self.peers.wait(lambda p: self._min_ack() is None or self._min_ack() >= self.seq
-                                      or self._halt(), 1.0, svc.shutdown.event):
-                pass
+            self._wait_acks(lambda p: self._min_ack() is None or self._min_ack() >= self.seq or self._halt())
         if not a.no_end_stop:
             svc.publish(svc.keys.control, P.Control("stop", {"reason": "end", "last_seq": int(self.seq)}))
         svc.log.info("end of sequence: %d frames sent", self.seq + 1)

@@ -23,8 +23,9 @@ import numpy as np
 from fmapping import protocol as P
 from fmapping.ply import write_ply
 from fmapping.trajectory import write_tum_trajectory  # imports torch: at start-up, not at the end
-from services.common import (MIB, Peers, Service, add_common_args, names, seq_problem, serve_until_end,
-                             service_parser, setup_logging, snapshot_problem, stop_kind, write_json_atomic)
+from services.common import (MIB, FirstMessage, Peers, Service, add_common_args, add_first_message_arg, names,
+                             seq_problem, serve_until_end, service_parser, setup_logging, snapshot_problem, stop_kind,
+                             write_json_atomic)
 
 
 def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -33,6 +34,7 @@ def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--wait-done", default="mapper", help="services whose 'done' status ends the recording at the end of a sequence")
     p.add_argument("--final-timeout", type=float, default=120.0)
     p.add_argument("--max-poses", type=int, default=1_000_000, help="per source")
+    add_first_message_arg(p, "pose")
     return add_common_args(p)
 
 
@@ -168,11 +170,12 @@ def run(svc: Service, args) -> int:
         svc.subscribe(key, channel, admit=lambda k, d, expect=expect: svc.decode(d, expect, k))
     svc.subscribe_control()
     svc.start()
-    serve_until_end(svc, peers, lambda ch, key, data: handle_message(svc, rec, peers, ch, key, data, wait_done),
-                    wait_done, args.final_timeout)
+    first = FirstMessage(getattr(args, "first_message_timeout", 0), f"pose on {svc.keys.poses()}")
+    code = serve_until_end(svc, peers, lambda ch, key, data: handle_message(svc, rec, peers, ch, key, data, wait_done),
+                           wait_done, args.final_timeout, first=first, data_channels=("poses",))
     summary = rec.write()
     svc.log.info("wrote %s", ", ".join(summary["files"]) or "nothing (no poses, no points)")
-    return 0
+    return code
 
 
 def main(argv=None, session=None, keys=None) -> int:

@@ -17,8 +17,8 @@ import logging
 import time
 
 from fmapping.cancel import Cancelled
-from services.common import (MIB, Service, add_common_args, available_cpus, run_main, service_parser,
-                             set_torch_threads, setup_logging)
+from services.common import (MIB, FirstMessage, Service, add_common_args, add_first_message_arg, available_cpus,
+                             run_main, service_parser, set_torch_threads, setup_logging)
 from services.mapper import POSE_SOURCES, MapperCore, MapperServiceOptions, load_mapper_config
 
 
@@ -49,6 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=0,
                    help="torch threads (0 = auto: half the CPUs this process may use, at least 1)")
     p.add_argument("--linger", action="store_true", help="after the end, keep answering map/latest until SIGTERM")
+    add_first_message_arg(p, "frame")
     return add_common_args(p)
 
 
@@ -115,11 +116,20 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args) -> int:
     if core.latest_field is not None:
         publish([("field", core.latest_field)])
     interrupted = False
+    code = 0
+    first = FirstMessage(args.first_message_timeout, f"frame on {keys.frames}")
+    if core.ack >= 0:
+        first.see()  # resumed: frames came before
     while not svc.shutdown.requested and not core.finished:
         item = svc.inbox.get(timeout=0.1)
+        if item is None and first.expired():
+            code = svc.give_up(first.message())  # the outputs are still written below
+            break
         try:
             if item is not None:
                 channel, (key, msg) = item  # decoded and checked already (admit)
+                if channel == "frames":
+                    first.see()
                 if channel in ("end", "control") and msg.command == "stop":
                     report("finishing")
                     svc.publish_status()
@@ -155,7 +165,7 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args) -> int:
     if args.linger and core.finished:
         while not svc.shutdown.wait(0.5):
             pass
-    return 0
+    return code
 
 
 if __name__ == "__main__":

@@ -11,8 +11,8 @@ import argparse
 import logging
 
 from fmapping.runtime import limit_blas_threads, retain_freed_memory
-from services.common import (MIB, Service, add_common_args, query_latest, run_main, service_parser,
-                             set_torch_threads, setup_logging)
+from services.common import (MIB, FirstMessage, Service, add_common_args, add_first_message_arg, query_latest,
+                             run_main, service_parser, set_torch_threads, setup_logging)
 from services.tracker import TrackerCore, TrackerServiceOptions, load_tracker_config
 
 
@@ -28,6 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pose source fixing world frame and scale of the mono bootstrap ('' for none)")
     p.add_argument("--query-timeout", type=float, default=2.0, help="seconds to wait for map/latest at start")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0 = auto: 1; its tensors are small)")
+    add_first_message_arg(p, "frame")
     return add_common_args(p)
 
 
@@ -67,11 +68,16 @@ def serve(svc: Service, cfg, opts: TrackerServiceOptions, args) -> int:
         core.handle("field", latest, keys.latest)
         svc.log.info("synced to map version %d (frame %d) from %s", core.version, core.map_seq, keys.latest)
     stop = False
+    first = FirstMessage(args.first_message_timeout, f"frame on {keys.frames}")
     while not svc.shutdown.requested and not stop:
         item = svc.inbox.get(timeout=0.1)
         if item is None:
+            if first.expired():
+                return svc.give_up(first.message())
             continue
         channel, (key, msg) = item  # decoded and checked already (admit)
+        if channel == "frames":
+            first.see()
         try:
             if channel in ("end", "control"):
                 if msg.command == "stop":
