@@ -19,8 +19,10 @@ on a free ``tcp/127.0.0.1:<port>`` and connects to every process started before 
 to OUT/logs/<name>.log and writes its status to OUT/status/<name>.json, which the launcher
 reads to show progress. At the end of the sequence play sends the end-of-sequence stop;
 the mapper runs its closing stage and writes OUT/map.ply, OUT/mesh.ply, OUT/traj.txt and
-OUT/stats.json; record and view finish after it. Ctrl-C (or SIGTERM) stops every process
-(SIGINT, then SIGKILL after a grace period); the mapper still writes its current map.
+OUT/stats.json; record and view finish after it. A mapper, tracker, recorder or viewer that
+crashes while play streams is started again (at most 3 times, backoff 1, 2, 4 s; counted in
+OUT/up.json ``restarts``); the mapper resumes from its checkpoint. Ctrl-C (or SIGTERM) stops
+every process (SIGINT, then SIGKILL after a grace period); the mapper still writes its current map.
 
 This module only starts processes and reads files: it does not import zenoh.
 With ``--poses external`` a producer must publish ``Pose(source="external")`` (see
@@ -64,6 +66,14 @@ EXTERNAL_SOURCE = "external"  # pose source and status name of an external produ
 # A service's status file is rewritten by its heartbeat thread every 0.5 s, even during a long update:
 # one unchanged for this long belongs to a hung process, and the run is stopped with its name.
 HEARTBEAT_TIMEOUT = 120.0
+# Supervision: a service that dies while play still streams is started again, at most MAX_RESTARTS
+# times each, after RESTART_BACKOFF * 2**k seconds (k = restarts so far). The mapper resumes from
+# OUT/checkpoint.pt, the tracker re-syncs from map/latest. Play is not restarted (it would start the
+# sequence over), nor is anything once play has finished (the end-of-sequence stop is gone then).
+RESTARTABLE = ("mapper", "tracker", "record", "view")
+MAX_RESTARTS = 3
+RESTART_BACKOFF = 1.0
+FINAL_CODES = (2, 3)  # bad input, gave up waiting (services.common.EXIT_STALLED): starting again changes nothing
 
 
 @dataclass
@@ -289,9 +299,21 @@ class Proc:
         if self.status_file.exists():
             self.status_file.unlink()
         self.argv = argv + ["--status-file", str(self.status_file), "--exit-with-parent"]
+        self.env = env
+        self.restarts = 0
         self._log = open(self.log_path, "w")
         self.popen = subprocess.Popen(self.argv, stdout=self._log, stderr=subprocess.STDOUT, env=env,
                                       start_new_session=True)
+
+    def restart(self) -> None:
+        """Start the same command again after it died: the log goes on, the status starts over."""
+        self._log.write(f"\n--- fmapping up: restart {self.restarts + 1} (exit code {self.rc}) ---\n")
+        self._log.flush()
+        if self.status_file.exists():
+            self.status_file.unlink()
+        self.popen = subprocess.Popen(self.argv, stdout=self._log, stderr=subprocess.STDOUT, env=self.env,
+                                      start_new_session=True)
+        self.restarts += 1
 
     @property
     def rc(self) -> Optional[int]:
@@ -568,6 +590,7 @@ def _monitor(procs: dict[str, Proc], t0: float, timeout: Optional[float], out: P
     of ``infra`` (the router) must stay up meanwhile, and every running service must keep beating
     (:data:`HEARTBEAT_TIMEOUT`). A failure is printed and appended to ``errors``; returns 1 then."""
     errors = errors if errors is not None else []
+    pending: dict[str, float] = {}  # service -> when to restart it
 
     def fail(msg: str) -> int:
         print(f"\nfmapping up: {msg}", file=sys.stderr, flush=True)
@@ -582,8 +605,9 @@ def _monitor(procs: dict[str, Proc], t0: float, timeout: Optional[float], out: P
             line = _progress(procs, t0)
             print(("\r" + line + " " * 8) if tty else line, end="" if tty else "\n", flush=True)
             last_print = now
+        _supervise(procs, pending, now)
         rcs = {n: p.rc for n, p in procs.items()}
-        failed = {n: rc for n, rc in rcs.items() if rc not in (None, 0)}
+        failed = {n: rc for n, rc in rcs.items() if rc not in (None, 0) and n not in pending}
         failed.update({n: p.rc for n, p in (infra or {}).items() if p.rc is not None})
         if failed:
             name, rc = next(iter(failed.items()))
@@ -610,6 +634,26 @@ def _monitor(procs: dict[str, Proc], t0: float, timeout: Optional[float], out: P
     return 0
 
 
+def _supervise(procs: dict[str, Proc], pending: dict[str, float], now: float) -> None:
+    """Schedule a restart (``pending``: service -> monotonic time) for every restartable service that
+    died while play still runs and has restarts left; start those whose time has come."""
+    play = procs.get("play")
+    streaming = play is None or play.rc is None
+    for name in RESTARTABLE:
+        p = procs.get(name)
+        if p is None or p.rc in (None, 0, *FINAL_CODES) or name in pending or not streaming \
+                or p.restarts >= MAX_RESTARTS:
+            continue
+        delay = RESTART_BACKOFF * 2 ** p.restarts
+        pending[name] = now + delay
+        print(f"\nfmapping up: {name} exited with code {p.rc}; restarting it in {delay:.0f} s "
+              f"({p.restarts + 1}/{MAX_RESTARTS})", file=sys.stderr, flush=True)
+    for name, when in list(pending.items()):
+        if now >= when:
+            del pending[name]
+            procs[name].restart()
+
+
 def _write_summary(procs: dict[str, Proc], t0: float, out: Path, error: str = "") -> dict:
     """OUT/up.json: seconds, the outputs present, every service's last status, and ``error`` (why
     the run failed) when there is one."""
@@ -623,6 +667,7 @@ def _write_summary(procs: dict[str, Proc], t0: float, out: Path, error: str = ""
     summary["status"] = {n: {"state": p.status().get("state"), "frame_seq": p.status().get("frame_seq"),
                              "counters": p.status().get("counters", {}), "rc": p.rc,
                              "last_error": p.status().get("last_error", "")} for n, p in procs.items()}
+    summary["restarts"] = {n: p.restarts for n, p in procs.items() if p.restarts}
     (out / "up.json").write_text(json.dumps(summary, indent=1, default=str))
     return summary
 
