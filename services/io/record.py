@@ -181,7 +181,7 @@ def run(svc: Service, args) -> int:
 def main(argv=None, session=None, keys=None) -> int:
     args = add_args(service_parser("services.io record", __doc__)).parse_args(argv)
     setup_logging(args.log_level, "record")
-    # bounded in items and bytes: ~75 MiB at most (the stop queue "end" comes first, see services.common)
+    # bounded in items and bytes: ~102 MiB at most (the stop queue "end" comes first, see services.common)
     with Service("record", args, capacities={"end": 8, "control": 64, "status": 256, "poses": 100_000, "points": 2},
                  max_bytes={"end": MIB, "control": MIB, "status": 4 * MIB, "poses": 32 * MIB, "points": 64 * MIB},
                  session=session, keys=keys) as svc:
