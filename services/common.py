@@ -4,11 +4,11 @@ status counters and heartbeats, signal handling, and what the zenoh-free service
 
 Only ``services/`` imports zenoh; the library (``fmapping``) never does, and neither do the
 service cores (this module imports zenoh only when a session or config is made). Every service
-follows the same shape: zenoh callbacks do no work beyond copying the payload into a
-bounded :class:`Inbox` (drop-oldest, or thinned; bounded in items and in bytes), after
-checking it where the service asks for that (:meth:`Service.subscribe` with ``admit``: decoded
-and checked for plausibility in the callback, so that a bad message is never queued and never
-displaces a real one); one worker loop (the main thread) calls the library and publishes
+follows the same shape: zenoh callbacks do no work beyond checking the payload where the
+service asks for that (:meth:`Service.subscribe` with ``admit``: decoded and checked for
+plausibility in the callback, so that a bad message is never queued and never displaces a real
+one) and copying it into a bounded :class:`Inbox` (drop-oldest, or thinned; bounded in items
+and in bytes); one worker loop (the main thread) calls the library and publishes
 results. A message that fails to decode is counted (``decode_errors``) and logged (rate
 limited); it never reaches the service's state. Stop commands (the end of the sequence among
 them) have a queue of their own, ``end``, that neither data nor other commands can evict.
