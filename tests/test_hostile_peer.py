@@ -180,7 +180,7 @@ def test_recorder_ignores_unplayed_and_negative_poses_and_implausible_points(tmp
     rec = Recorder(tmp_path, source="tracker")
     for s in range(10):
         assert rec.on_pose(P.Pose(seq=s, timestamp=float(s), c2w=np.eye(4), source="tracker"))
-    rec.on_played(7)  # play reported frames 0..7
+    rec.on_played(7, end=True)  # the end-of-sequence stop: frames 0..7 were played
     assert not rec.on_pose(P.Pose(seq=-1, timestamp=0.0, c2w=np.eye(4), source="tracker"))  # the issue's ATE 12.67 cm
     assert not rec.on_pose(P.Pose(seq=7 + C.MAX_SEQ_AHEAD + 1, timestamp=0.0, c2w=np.eye(4), source="tracker"))
     pts = np.zeros((4, 3), np.float32)
@@ -262,3 +262,15 @@ def test_record_without_any_pose_gives_up(tmp_path):
         assert record.run(svc, args) == C.EXIT_STALLED
         assert "no pose on fmapping/hostile/poses/*" in svc.status.last_error
     assert (tmp_path / "r" / "record.json").is_file()
+
+
+def test_recorder_without_the_end_stop_keeps_the_poses_a_late_status_may_not_show(tmp_path):
+    """An interrupted run has no end stop, and play's last status may be half a second old: poses just
+    beyond it are kept (STATUS_MARGIN), those far beyond are not."""
+    from services.io.record import STATUS_MARGIN, Recorder
+
+    rec = Recorder(tmp_path, source="gt")
+    for s in (0, 5, 5 + STATUS_MARGIN, 6 + STATUS_MARGIN):
+        rec.on_pose(P.Pose(seq=s, timestamp=float(s), c2w=np.eye(4), source="gt"))
+    rec.on_played(5)
+    assert rec.played_poses(rec.poses["gt"]) == [0, 5, 5 + STATUS_MARGIN]

@@ -3,8 +3,10 @@
 Keeps every Pose it hears (per source, latest per frame number) and the newest
 PointsSnapshot. It does not trust a peer blindly: a pose with a negative frame number or one
 far beyond the frames played (``services.common.MAX_SEQ_AHEAD``) is refused at once, and poses
-of frames that were never played (beyond the newest frame play reported, in its status or in
-the end-of-sequence stop) are left out of the files (``unplayed_poses``); a points snapshot
+of frames that were never played (beyond the last frame of the end-of-sequence stop; without
+that stop, as when the run is interrupted, beyond the newest frame play's status reported plus
+``STATUS_MARGIN``, since a status is up to half a second old) are left out of the files
+(``unplayed_poses``); a points snapshot
 must follow the last one plausibly (``services.common.snapshot_problem``). On the end-of-sequence stop it waits (``--final-timeout``) until the
 services in ``--wait-done`` report state ``done`` (so the mapper's final map is in),
 then writes and exits; on any other stop, SIGINT or SIGTERM it writes what it has.
@@ -38,6 +40,9 @@ def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     return add_common_args(p)
 
 
+STATUS_MARGIN = 64  # frames play may have sent after its last status (0.5 s apart): 2 s at 30 fps
+
+
 class Recorder:
     """Zenoh-free state of the recorder: feed it decoded messages, then :meth:`write`."""
 
@@ -47,6 +52,7 @@ class Recorder:
         self.max_poses = max_poses
         self.player = player  # the service whose frames the poses belong to
         self.played = -1  # the newest frame number the player reported (-1: none seen, keep every pose)
+        self.ended = False  # the end-of-sequence stop told the last frame exactly
         self.poses: dict[str, dict[int, tuple[float, np.ndarray]]] = {}
         self.points: Optional[P.PointsSnapshot] = None
         self.rejected: dict[str, int] = {}  # reason -> count
@@ -68,9 +74,10 @@ class Recorder:
         d[pose.seq] = (pose.timestamp, np.array(pose.c2w))
         return True
 
-    def on_played(self, seq: int) -> None:
-        """The player has sent frames up to ``seq`` (its status, or the end-of-sequence stop's last_seq)."""
+    def on_played(self, seq: int, end: bool = False) -> None:
+        """The player has sent frames up to ``seq`` (its status; ``end``: the end-of-sequence stop's last_seq)."""
         self.played = max(self.played, int(seq))
+        self.ended = self.ended or end
 
     def on_points(self, snap: P.PointsSnapshot) -> bool:
         current = -1 if self.points is None else self.points.version
@@ -82,7 +89,8 @@ class Recorder:
 
     def played_poses(self, d: dict) -> list[int]:
         """Frame numbers of ``d`` that were played (all of them while no player was heard)."""
-        return sorted(s for s in d if self.played < 0 or s <= self.played)
+        last = self.played if self.ended else self.played + STATUS_MARGIN
+        return sorted(s for s in d if self.played < 0 or s <= last)
 
     def write(self) -> dict:
         self.out.mkdir(parents=True, exist_ok=True)
@@ -138,7 +146,7 @@ def handle_message(svc: Service, rec: Recorder, peers: Peers, channel: str, key:
             if msg.command == "stop" and msg.args.get("reason") == "end":
                 last = msg.args.get("last_seq")
                 if isinstance(last, int) and not isinstance(last, bool):
-                    rec.on_played(last)
+                    rec.on_played(last, end=True)
             if msg.command == "save":
                 rec.write()
             return stop_kind(msg, wait_done)
