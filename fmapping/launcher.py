@@ -454,10 +454,18 @@ def run_up(args) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
             old_handlers[sig] = signal.signal(sig, on_signal)
     try:
-        if creds is not None:
+        for attempt in range(3 if creds is not None else 0):
             infra["router"] = Proc("router", py + ["services.router", "--zenoh-config", str(creds.router_config)],
                                    out, env)
-            _wait_ready([infra["router"]], opts.start_timeout)
+            try:
+                _wait_ready([infra["router"]], opts.start_timeout)
+                break
+            except RuntimeError:  # the free port was taken before the router bound it: another port
+                if attempt == 2:
+                    raise
+                infra.pop("router").close()
+                creds = make_run_credentials(out / "secrets", f"tcp/127.0.0.1:{free_port()}", ns)
+        if creds is not None:
             print(f"fmapping up: secure run: router on {creds.endpoint}, per-run credentials in {creds.folder} "
                   "(mode 0600), access control by role (--insecure: the open loopback mesh)", flush=True)
         procs["mapper"] = Proc("mapper", mapper_argv, out, env)

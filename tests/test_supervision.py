@@ -96,3 +96,33 @@ def test_fmapping_up_survives_kill_9_of_the_mapper(scene, tmp_path):
           f"restarted once, resumed from the checkpoint; {len(ts)} of 14 frames mapped ({lost} lost)")
     # at most the frames play had in flight (window 4) plus those of the update in progress
     assert lost <= 4 + SMALL_MAPPER["new_frames_per_window"] + 2
+
+
+@pytest.mark.slow
+def test_a_router_port_taken_before_it_binds_is_replaced(scene, tmp_path, monkeypatch, capsys):
+    """free_port() then bind is a race: when someone takes the router's port first, the router
+    fails (nobody can pose as it) and the launcher makes new credentials on another port."""
+    import argparse
+    import socket
+
+    import yaml
+
+    squatter = socket.socket()
+    squatter.bind(("127.0.0.1", 0))
+    squatter.listen()
+    taken = squatter.getsockname()[1]
+    ports = iter([taken])
+    real = L.free_port
+    monkeypatch.setattr(L, "free_port", lambda host="127.0.0.1": next(ports, None) or real(host))
+    cfg = tmp_path / "up.yaml"
+    cfg.write_text(yaml.safe_dump({"mapper": SMALL_MAPPER, "launcher": {"timeout": 240, "threads": 1,
+                                                                         "view": False}}))
+    out = tmp_path / "out"
+    try:
+        rc = L.run_up(argparse.Namespace(data=str(scene), poses="gt", out=str(out), fps=0.0, config=str(cfg)))
+    finally:
+        squatter.close()
+    err = capsys.readouterr()
+    assert rc == 0, err.out[-2000:] + err.err[-2000:]
+    # the first router could not bind the taken port: the run announced (and used) another one
+    assert f"tcp/127.0.0.1:{taken}" not in err.out and "secure run: router on tcp/127.0.0.1:" in err.out
