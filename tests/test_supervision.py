@@ -126,3 +126,28 @@ def test_a_router_port_taken_before_it_binds_is_replaced(scene, tmp_path, monkey
     assert rc == 0, err.out[-2000:] + err.err[-2000:]
     # the first router could not bind the taken port: the run announced (and used) another one
     assert f"tcp/127.0.0.1:{taken}" not in err.out and "secure run: router on tcp/127.0.0.1:" in err.out
+
+
+def test_mapper_skips_the_frames_a_restarted_pose_source_will_never_answer(dataset):
+    """The tracker died with frames in flight: its restarted process never saw them. The mapper
+    notices the restart (the tracker's status counter starts over) and skips them at once instead
+    of holding the player's window for pose_timeout (30 s)."""
+    from fmapping import protocol as P
+    from service_helpers import feed, gt_messages, small_cfg
+    from services.mapper import MapperCore, MapperServiceOptions
+
+    core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="tracker"))
+    feed(core, dataset, range(4), source="tracker")  # the init
+    assert core.ack == 3
+    for i in (4, 5, 6):  # frames whose poses the dead tracker never sent
+        core.handle("frames", gt_messages(dataset, i, "tracker")[1])
+    core.handle("poses", gt_messages(dataset, 5, "tracker")[0])  # one it did answer
+    assert core.ack == 3
+    core.on_source_status(P.Status(service="tracker", seq=40))
+    core.on_source_status(P.Status(service="mapper", seq=1))  # another service: ignored
+    assert core.ack == 3
+    core.on_source_status(P.Status(service="tracker", seq=1))  # restarted
+    assert core.ack == 6 and core.counters.get("orphaned_frames") == 2 and core.counters.get("source_restarts") == 1
+    assert core.seq_of_fid[-1] == 5  # the answered one was mapped, in order
+    feed(core, dataset, [7, 8], source="tracker")  # the new tracker's frames go on as usual
+    assert core.ack == 8 and core.seq_of_fid[-2:] == [7, 8]

@@ -102,6 +102,8 @@ class MapperCore(ServiceCore):
         self.clock = clock  # for the pose timeout (injectable in tests)
         self.should_stop = should_stop  # asked between iterations and rendered views (fmapping.cancel)
         self._arrived: dict[int, float] = {}
+        self._source_seq: Optional[int] = None  # the pose source's last status counter
+        self._orphaned = -1  # frames up to this one wait for a pose that will never come (source restarted)
         self.opts = (opts or MapperServiceOptions()).validate()
         self.cfg = cfg if cfg is not None else MapperConfig()
         if not self.opts.unposed_init:  # every frame comes with its pose: trusted, as fmapping map / slam do
@@ -190,6 +192,22 @@ class MapperCore(ServiceCore):
             self.counters.inc("dropped_poses")
         return self._integrate()
 
+    def on_source_status(self, st: P.Status) -> list[Output]:
+        """The pose source's heartbeat. When its counter starts over (a restarted tracker or
+        producer), the frames already waiting for a pose will never get one: the new process never
+        saw them. They are skipped now (``orphaned_frames``) instead of after ``pose_timeout``,
+        which would hold the player's window that long."""
+        if st.service != self.opts.pose_source:
+            return []
+        prev, self._source_seq = self._source_seq, st.seq
+        if prev is None or st.seq >= prev:
+            return []
+        self.counters.inc("source_restarts")
+        waiting = [s for s in self.frames if s not in self.poses]
+        if waiting:
+            self._orphaned = max(self._orphaned, max(waiting))
+        return self._integrate()
+
     def _refine_pose(self, p: P.Pose) -> list[Output]:
         """A new pose for a frame already integrated (e.g. the tracker's bundle adjustment moved
         it) replaces the mapper's; one for a frame it never integrated is stale."""
@@ -253,7 +271,10 @@ class MapperCore(ServiceCore):
             if pose is None and not unposed_ok:
                 waited = self.clock() - self._arrived.get(seq, self.clock())
                 timed_out = self.opts.pose_timeout > 0 and waited > self.opts.pose_timeout
-                if len(self.frames) > self.opts.max_pending or timed_out:
+                orphaned = seq <= self._orphaned
+                if len(self.frames) > self.opts.max_pending or timed_out or orphaned:
+                    if orphaned:
+                        self.counters.inc("orphaned_frames")
                     self.frames.popitem(last=False)
                     self.counters.inc("frames_without_pose")
                     if timed_out:

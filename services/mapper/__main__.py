@@ -16,6 +16,7 @@ import argparse
 import logging
 import time
 
+from fmapping import protocol as P
 from fmapping.cancel import Cancelled
 from services.common import (MIB, FirstMessage, Service, add_common_args, add_first_message_arg, available_cpus,
                              run_main, service_parser, set_torch_threads, setup_logging)
@@ -55,8 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 # inbox bounds per channel, items and bytes (the stop queue "end" comes first, see services.common):
 # at most ~266 MiB queued, whatever arrives; 32 frames of 1280x720 RGB-D are ~205 MB
-CAPACITIES = {"end": 8, "control": 64, "poses": 8192, "frames": 32}
-MAX_BYTES = {"end": 1 * MIB, "control": 1 * MIB, "poses": 8 * MIB, "frames": 256 * MIB}
+CAPACITIES = {"end": 8, "control": 64, "status": 16, "poses": 8192, "frames": 32}
+MAX_BYTES = {"end": 1 * MIB, "control": 1 * MIB, "status": 1 * MIB, "poses": 8 * MIB, "frames": 256 * MIB}
 
 
 def main(argv=None, session=None, keys=None) -> int:
@@ -95,6 +96,8 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args) -> int:
     if opts.anchor_source:
         svc.subscribe(keys.poses(opts.anchor_source), "poses", admit=lambda k, d: core.admit("poses", d, k))
     svc.subscribe(keys.frames, "frames", admit=lambda k, d: core.admit("frames", d, k))
+    if opts.pose_source != "gt":  # a restarted tracker / producer: skip the frames it will never answer
+        svc.subscribe(keys.status(opts.pose_source), "status", admit=lambda k, d: svc.decode(d, P.Status, k))
     svc.queryable(keys.latest, lambda: core.latest_field_bytes)
     channels = {"field": keys.field, "points": keys.points}
 
@@ -133,7 +136,7 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args) -> int:
                 if channel in ("end", "control") and msg.command == "stop":
                     report("finishing")
                     svc.publish_status()
-                publish(core.apply(msg))
+                publish(core.on_source_status(msg) if channel == "status" else core.apply(msg))
             publish(core.tick())
         except Cancelled:
             interrupted = core.interrupted = True
