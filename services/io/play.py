@@ -47,7 +47,7 @@ def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--wait-for", default=None, help="services that must be up before the first frame (default: --ack-from)")
     p.add_argument("--start-timeout", type=float, default=60.0)
     p.add_argument("--ack-timeout", type=float, default=15.0, help="seconds without a status after which a consumer no longer paces playback")
-    p.add_argument("--stall-timeout", type=float, default=300.0,
+    p.add_argument("--stall-timeout", type=float, default=600.0,
                    help="seconds a live consumer's acknowledgement may stay put while frames wait for it; then "
                         "playback ends with an error (exit code 3) (0 = wait forever)")
     p.add_argument("--loop", action="store_true", help="start over at the end (frame numbers keep increasing)")
