@@ -525,7 +525,7 @@ class Mapper:
         return tn, tf, ok
 
     def _render_batch(self, o: Tensor, d: Tensor, mode: str, n_coarse: int, n_fine: int, grad: bool = True,
-                      sw_window: int = 0):
+                      sw_window: int = 0, color: bool = True):
         """Sample and render rays (background black).
 
         ``mode`` "stratified": ``n_coarse`` stratified samples, all rendered. "pdf" /
@@ -574,6 +574,8 @@ class Mapper:
             raw = raw_known.index_put((ri, si), raw_act)
             alpha = raw_to_alpha(raw, sample_deltas(t_all, dnorm), field.cfg.alpha_mode, field.cfg.density_shift)
             out = composite(alpha, t_all, None, None)
+            if not color:  # depth-only rays (the sparse depth term)
+                return out, (tn, tf, ok)
             wd = out.weights.detach()
             mask = wd > cfg.color_threshold * wd.amax(-1, keepdim=True)
             cr, cs = mask.nonzero(as_tuple=True)
@@ -678,7 +680,8 @@ class Mapper:
             s_frame, s_uv, s_z, s_w = sparse
             pick = torch.randint(len(s_z), (min(cfg.sparse_rays, len(s_z)),), generator=g).to(self.device)
             so, sd = cam.rays(c2w[s_frame[pick]], s_uv[pick])
-            s_out, (_, s_tf, s_ok) = self._render_batch(so, sd, mode, n_coarse, n_fine, grad=True, sw_window=sw_window)
+            s_out, (_, s_tf, s_ok) = self._render_batch(so, sd, mode, n_coarse, n_fine, grad=True, sw_window=sw_window,
+                                                        color=False)
             sp = sparse_depth_loss(s_out.weights, s_out.t, s_out.acc, s_tf, s_z[pick], s_w[pick] * s_ok)
             loss = loss + cfg.sparse_depth_weight * sp
         if expo is not None and cfg.exposure_reg > 0:
@@ -726,11 +729,10 @@ class Mapper:
         t0 = time.perf_counter() if t0 is None else t0
         imgs = self._images_f(ids)
         sparse = self._sparse_batch(ids)
+        scene_imgs = self._scene_images(ids, imgs)  # the exposures move slowly: undone once per update
         logs = []
-        for k in range(iters):
+        for _ in range(iters):
             check_stop(self._should_stop, f"{kind} update (after {len(logs)} of {iters} iterations)")
-            if k % 10 == 0:  # the exposures move slowly: undo them every 10 iterations
-                scene_imgs = self._scene_images(ids, imgs)
             logs.append(self._step(ids, imgs, mode, n_coarse, n_fine, sw_window, scene_imgs, sparse))
         st = WindowStats(
             index=len(self._stats), kind=kind, seconds=time.perf_counter() - t0, iterations=iters,

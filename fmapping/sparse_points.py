@@ -225,8 +225,8 @@ class TrackTriangulator:
                 pix.append(uv)
 
 
-def aabb_from_points(points: np.ndarray, centres: Optional[np.ndarray] = None, percentile: float = 1.0,
-                     margin: float = 0.1, rel_margin: float = 0.1) -> Optional[np.ndarray]:
+def aabb_from_points(points: np.ndarray, centres: Optional[np.ndarray] = None, percentile: float = 0.5,
+                     margin: float = 0.1, rel_margin: float = 0.15) -> Optional[np.ndarray]:
     """Box (2, 3) around scene points (robust ``percentile`` / ``100 - percentile`` per axis), the
     camera ``centres`` and a margin of ``max(margin, rel_margin * extent)`` per axis; None for
     fewer than 20 points."""

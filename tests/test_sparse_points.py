@@ -35,7 +35,7 @@ def test_triangulate_rays_meets_known_points():
 def test_aabb_from_points_robust_and_with_centres():
     rng = np.random.default_rng(1)
     pts = rng.uniform([-2, -1, 0], [3, 2, 2.5], (5000, 3))
-    pts[:10] = [50.0, 50.0, 50.0]  # outliers (0.2 %) are cut by the 1 % percentile
+    pts[:10] = [50.0, 50.0, 50.0]  # outliers (0.2 %) are cut by the 0.5 % percentile
     box = aabb_from_points(pts, centres=np.array([[0.0, 0.0, 4.0]]), margin=0.1, rel_margin=0.0)
     np.testing.assert_allclose(box[0], [-2 - 0.1, -1 - 0.1, 0 - 0.1], atol=0.1)
     np.testing.assert_allclose(box[1], [3 + 0.1, 2 + 0.1, 4.0 + 0.1], atol=0.1)  # z reaches the camera
@@ -71,8 +71,10 @@ def test_box_from_tracks_of_a_room_with_known_extent(room_frames):
     inside = ((gt[seen] >= box[0]) & (gt[seen] <= box[1])).all(1).mean()
     lo, hi = scene.bbox()
     assert inside > 0.97, inside
-    # no more than 0.6 m past the true room on any side (margin 10 % of the extent + noise)
-    assert (box[0] > lo - 0.6).all() and (box[1] < hi + 0.6).all(), (box, lo, hi)
+    # past the true room by at most 20 % of its extent on any side (the margin is 15 % of the points' extent;
+    # measured: 0.84 m on x for a 5.0 m room); the frusta of these views would reach 6 m past the cameras
+    pad = 0.2 * (hi - lo)
+    assert (box[0] > lo - pad).all() and (box[1] < hi + pad).all(), (box, lo, hi)
 
 
 def test_frame_depths_follow_the_frame_pose(room_frames):
