@@ -14,7 +14,7 @@ Rows (a row whose data folder is missing is skipped with a note; data from ``../
 * ``7scenes_long``  7-Scenes redkitchen long (700 frames), slam RGB only: Sim3 ATE and the accepted loop
   closures checked against the GT (the loop's own relative pose, see :func:`check_loops`).
 * ``synth_map``     synthetic rooms (``generate_scene(..., variety="wide")`` when the generator has it) for
-  several seeds, ``run_map`` with GT poses; the generator's room box is withheld (never given to the mapper).
+  several seeds, ``run_map`` with GT poses; the mapper bounds each room itself (no generator box).
 * ``synth_slam``    the same rooms, ``run_slam``: Sim3 ATE and |scale - 1| of the Sim3 after the late anchor.
 * ``tum_rpy``       TUM fr1_rpy with GT poses (``run_map``): held-out PSNR.
 * ``lego``          NeRF-synthetic lego novel-view PSNR (``bench/mapping.py``'s :func:`run_lego`).
@@ -302,8 +302,8 @@ def map_picture(ply: Path, png: Path, title: str, gt_ply: Optional[Path], gt_pos
 
 # ----------------------------------------------------------------------------- synthetic scenes
 def synth_scene(base: Path, seed: int, frames: int, size: tuple[int, int], variety: str) -> tuple[Path, str]:
-    """A generated room (cached by the generator's source hash, so a changed generator makes new ones)
-    with the room box withheld from ``scene.json``: the mapper must find its bounds itself.
+    """A generated room (cached by the generator's source hash, so a changed generator makes new ones).
+    The mapper never reads the generator's room box: it bounds the scene from its own points.
     Returns (folder, the variety actually generated)."""
     from fmapping import synthetic
 
@@ -311,13 +311,10 @@ def synth_scene(base: Path, seed: int, frames: int, size: tuple[int, int], varie
     has_variety = "variety" in inspect.signature(synthetic.generate_scene).parameters
     used = variety if has_variety else "default"
     d = base / f"s{seed}_f{frames}_{size[0]}x{size[1]}_{used}_{src}"
-    if not (d / "scene.json").is_file() or "bbox" in json.loads((d / "scene.json").read_text()):
+    if not (d / "scene.json").is_file():
         log(f"generating {d.name}")
         kw = {"variety": variety} if has_variety else {}
         synthetic.generate_scene(d, seed=seed, frames=frames, size=size, **kw)
-        meta = json.loads((d / "scene.json").read_text())
-        meta["bbox_withheld"] = meta.pop("bbox", None)  # pipeline.scene_aabb / SlamRun._aabb would take it
-        (d / "scene.json").write_text(json.dumps(meta, indent=2))
     return d, used
 
 
