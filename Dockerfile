@@ -9,6 +9,8 @@ FROM python:3.11-slim
 
 ARG TORCH_VERSION=2.13.0
 ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu
+# the zenoh release of the router image (docker-compose.yml passes the same ZENOH_VERSION to both)
+ARG ZENOH_VERSION=1.10.2
 
 ENV PYTHONUNBUFFERED=1 \
     PIP_NO_CACHE_DIR=1 \
@@ -29,8 +31,11 @@ COPY pyproject.toml README.md ./
 COPY fmapping ./fmapping
 COPY services ./services
 COPY examples ./examples
-RUN pip install . && python -c "import fmapping, services, zenoh, msgpack, rerun"
+RUN pip install . "eclipse-zenoh==${ZENOH_VERSION}" \
+    && python -c "import fmapping, services, zenoh, msgpack, rerun"
 
+# owned by the service user before VOLUME: a fresh named volume mounted there starts with this owner
+RUN mkdir -p /data /out && chown fmapping:fmapping /data /out
 USER fmapping
 VOLUME ["/data", "/out"]
 # each compose service sets its own command, e.g. python -m services.mapper --help
