@@ -280,6 +280,44 @@ def test_mapper_core_takes_a_later_pose_of_an_integrated_frame_as_its_refinement
     np.testing.assert_allclose(core.mapper.frame_poses()[2], dataset[3].c2w, atol=1e-12)
 
 
+def test_mapper_core_announces_its_newest_keyframe_for_the_viewer(dataset):
+    """Status counter ``last_keyframe``: the frame number (not the mapper's frame index) of its newest
+    keyframe after each update, which ``io view`` draws at that frame's pose."""
+    pytest.importorskip("rerun")
+    from services.io import view
+    from services.mapper import MapperCore, MapperServiceOptions
+
+    core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", points_interval=1e9, checkpoint_every=0))
+    seqs = [10 + 3 * i for i in range(10)]  # frame numbers apart from the mapper's frame ids 0..9
+    announced = []
+    for i, seq in enumerate(seqs):
+        f = dataset[i]
+        core.handle("poses", P.encode(P.Pose(seq=seq, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
+        core.handle("frames", P.encode(P.frame_from_dataset(f, seq=seq)))
+        kf = core.counters.snapshot().get("last_keyframe")  # (get() says 0 for a missing counter)
+        if kf is not None and (not announced or announced[-1] != kf):
+            announced.append(kf)
+    kfs = core.mapper.keyframe_ids()
+    # SMALL_MAPPER: keyframe ids 0, 2, 4, one new per update, each announced by its frame number
+    assert kfs == [0, 2, 4] and announced == [seqs[k] for k in kfs] == [10, 16, 22]
+
+    class Rec:  # a stand-in RecordingStream
+        def __init__(self):
+            self.entities = set()
+
+        def log(self, entity, *a, **k):
+            self.entities.add(entity)
+
+        def set_time(self, *a, **k):
+            pass
+
+    viewer = view.Viewer(Rec())
+    for i, seq in enumerate(seqs):
+        viewer.on_pose(P.Pose(seq=seq, timestamp=0.0, c2w=dataset[i].c2w, source="gt"))
+    viewer.on_status(P.Status(service="mapper", counters=core.counters.snapshot()))
+    assert viewer.keyframes == [announced[-1]] and f"world/keyframes/kf{announced[-1]:06d}" in viewer.rec.entities
+
+
 def test_mapper_checkpoint_resume(dataset, tmp_path):
     from services.mapper import MapperCore, MapperServiceOptions
 

@@ -319,6 +319,7 @@ class MapperCore(ServiceCore):
         self.counters.set("windows", self.windows)
         self.counters.inc(f"updates_{stats.kind}")
         self.counters.set("last_loss", float(stats.loss) if np.isfinite(stats.loss) else -1.0)
+        self._announce_keyframe()
         out: list[Output] = []
         snap = self.field_snapshot()
         if snap is not None:
@@ -333,6 +334,13 @@ class MapperCore(ServiceCore):
         if self.opts.checkpoint_every > 0 and self.windows % self.opts.checkpoint_every == 0:
             self.save_checkpoint()
         return out
+
+    def _announce_keyframe(self) -> None:
+        """Status counter ``last_keyframe``: the frame number (``seq``) of the newest keyframe. Keyframes
+        are chosen only in an update; ``services.io view`` draws each one it is told of at its pose."""
+        ids = self.mapper.keyframe_ids() if self.mapper is not None else []
+        if ids and max(ids) < len(self.seq_of_fid):  # fid = index into seq_of_fid (frames in the order added)
+            self.counters.set("last_keyframe", self.seq_of_fid[max(ids)])
 
     def tick(self) -> list[Output]:
         """Periodic work: frames whose pose timed out move on; a points snapshot when the map
