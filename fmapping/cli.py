@@ -6,7 +6,7 @@
     fmapping slam  --data DIR --out OUT [--poses photometric|kiss-icp|gt|PATH.txt] [--config cfg.yaml] [--no-export]
     fmapping eval recon --pred P.ply --gt G.ply
     fmapping eval traj  --est E.txt --gt G.txt [--align sim3|se3|none]
-    fmapping up    [--data DIR] [--poses tracker|gt] [--out OUT]
+    fmapping up    [--data DIR|VIDEO|BAG|camera:N] [--camera CAM] [--poses tracker|gt] [--out OUT] [--view live|save]
     fmapping demo  [--out OUT] [--poses tracker|gt]
     fmapping config dump [map|slam|up]
     fmapping --version
@@ -26,11 +26,23 @@ from typing import Optional, Sequence
 from fmapping.runtime import retain_freed_memory
 
 
+DATA_HELP = ("a dataset folder (TUM, Replica, 7-Scenes, NeRF transforms.json, fmapping synth), a plain image "
+             "folder (sorted by name), a video file, EuRoC MAV (mav0 layout), a ScanNet export, a rosbag2 / "
+             "MCAP / ROS1 bag (needs the [ros] extra)")
+CAMERA_HELP = ("intrinsics fx,fy,cx,cy[,k1,k2,p1,p2[,k3]] or a calib.txt / camera.yaml path (default: the data's "
+               "own, e.g. a calib.txt beside the images; a source without any is refused, never guessed)")
+
+
 def _add_data_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", required=True, help="dataset folder (TUM, Replica, 7-Scenes, NeRF transforms.json, fmapping synth)")
-    p.add_argument("--camera", default=None, help="override intrinsics: fx,fy,cx,cy[,k1,k2,p1,p2[,k3]] "
-                                                  "(default: the dataset's own, e.g. its calib.txt)")
+    p.add_argument("--data", required=True, help=DATA_HELP + "; camera:N (a live webcam) only with fmapping up / io play")
+    p.add_argument("--camera", default=None, help=CAMERA_HELP)
     p.add_argument("--max-frames", type=int, default=None, help="use only the first N frames (default: all)")
+    p.add_argument("--fps", type=float, default=None,
+                   help="frame rate for the timestamps of an image folder (default 30) or a video (default: the "
+                        "file's own)")
+    p.add_argument("--topic", default=None,
+                   help="image topic of a ROS bag (default: the Image / CompressedImage topic with the most "
+                        "messages, depth topics aside)")
 
 
 def _bbox(text: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
@@ -114,7 +126,10 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--delta", type=int, default=1, help="RPE frame step")
 
     p = sub.add_parser("up", help="run the multi-process system (io, tracker, mapper over zenoh)")
-    p.add_argument("--data", default=None, help="dataset folder (default: a generated synthetic scene)")
+    p.add_argument("--data", default=None,
+                   help=DATA_HELP + ", or camera:N for the live webcam N (needs --camera) (default: a generated "
+                        "synthetic scene)")
+    p.add_argument("--camera", default=None, help=CAMERA_HELP)
     p.add_argument("--poses", default="tracker", choices=["tracker", "gt", "external"],
                    help="pose source of the mapper: the RGB-only tracker, the dataset's GT, or an external "
                         "producer")
@@ -263,7 +278,7 @@ def cmd_synth(a) -> int:
 def cmd_info(a) -> int:
     from fmapping.datasets import open_dataset
 
-    ds = open_dataset(a.data, camera=a.camera, max_frames=a.max_frames)
+    ds = open_dataset(a.data, camera=a.camera, max_frames=a.max_frames, fps=a.fps, topic=a.topic)
     _print_json(ds.describe())
     return 0
 

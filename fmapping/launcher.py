@@ -122,16 +122,41 @@ def up_config_dict(cfg: UpConfig) -> dict:
     return d
 
 
-def run_info(data: Path, poses: str, mapper_cfg: Optional[Path], tracker_cfg: Optional[Path],
-             opts: LauncherOptions) -> dict:
+def run_info(data, poses: str, mapper_cfg: Optional[Path], tracker_cfg: Optional[Path],
+             opts: LauncherOptions, camera: Optional[str] = None) -> dict:
     """What the launcher adds to the mapper's OUT/stats.json, as ``fmapping map`` records them: the
-    dataset (intrinsics, depth scale, as ``io play`` opens it) and the config every service runs with."""
+    dataset (intrinsics, depth scale, as ``io play`` opens it) and the config every service runs with.
+    A live camera (``camera:N``) is not opened here: play opens it, and a webcam may take one reader only;
+    its intrinsics are the ``--camera`` given."""
     from fmapping.config import load_config
     from fmapping.datasets import open_dataset
+    from fmapping.datasets.live import is_live_spec
 
     resolved = UpConfig(mapper=load_config(_mapper_defaults(), mapper_cfg),
                         tracker=load_config(_tracker_defaults(), tracker_cfg), launcher=opts)
-    return {"dataset": open_dataset(data).describe(), "poses": poses, "config": up_config_dict(resolved)}
+    if is_live_spec(data):
+        dataset = {"root": data, "kind": "camera", "live": True, "frames": None, "camera_source": camera}
+    else:
+        dataset = open_dataset(data, camera=camera).describe()
+    return {"dataset": dataset, "poses": poses, "config": up_config_dict(resolved)}
+
+
+def up_data(args, out: Path, opts: LauncherOptions):
+    """The source ``fmapping up`` plays: ``--data`` (a path that must exist, or ``camera:N`` with
+    ``--camera``), else the generated synthetic scene. A path is a Path, a live camera its string."""
+    from fmapping.datasets.live import is_live_spec, live_index
+
+    if args.data and is_live_spec(args.data):
+        if live_index(args.data) is None:
+            raise ValueError(f"--data {args.data}: a live camera is camera:N, N the device number (camera:0)")
+        if not getattr(args, "camera", None):
+            raise ValueError(f"--data {args.data}: a live camera has no intrinsics of its own: give "
+                             "--camera fx,fy,cx,cy[,k1,k2,p1,p2[,k3]] or --camera path/to/camera.yaml")
+        return args.data
+    data = Path(args.data) if args.data else _scene(out, opts)
+    if not data.exists():
+        raise FileNotFoundError(f"dataset folder not found: {data}")
+    return data
 
 
 def add_run_info(out: Path, info: dict, since: float) -> bool:
@@ -391,9 +416,8 @@ def run_up(args) -> int:
     poses = args.poses
     if poses not in ("tracker", "gt", "external"):
         raise ValueError(f"--poses must be tracker, gt or external, got {poses!r}")
-    data = Path(args.data) if args.data else _scene(out, opts)
-    if not data.exists():
-        raise FileNotFoundError(f"dataset folder not found: {data}")
+    data = up_data(args, out, opts)
+    camera = getattr(args, "camera", None)
     timeout = getattr(args, "timeout", None) or opts.timeout
     ns = getattr(args, "ns", None) or f"up{os.getpid()}"
     mesh: list[str] = []  # endpoints of the processes started so far
@@ -425,7 +449,7 @@ def run_up(args) -> int:
         raise ValueError(f"launcher.tracker_frontend must be 'mono' or 'map', got {opts.tracker_frontend!r}")
     mono = poses == "tracker" and opts.tracker_frontend == "mono"
     mapper_cfg = with_user_box(mapper_cfg, getattr(args, "bbox", None), out)
-    info = run_info(data, poses, mapper_cfg, tracker_cfg, opts)  # errors in data or configs: before any process
+    info = run_info(data, poses, mapper_cfg, tracker_cfg, opts, camera)  # errors in data or configs: before any process
     started = time.time()
     if not insecure:
         from services.credentials import make_run_credentials
@@ -498,7 +522,8 @@ def run_up(args) -> int:
         window = max(opts.window, MONO_BOOTSTRAP_WINDOW) if mono else opts.window
         play_argv = py + ["services.io", "play", "--data", str(data), "--fps", str(args.fps or 0),
                           "--window", str(window), "--ack-from", "mapper", "--wait-for", ",".join(wait_for),
-                          "--start-timeout", str(play_start_timeout)] + net("play")
+                          "--start-timeout", str(play_start_timeout)] + (["--camera", camera] if camera else []) \
+            + net("play")
         procs["play"] = Proc("play", play_argv, out, env)
         if view == "live":
             print(f"fmapping up: live viewer at {live_url(args)} (the recording also goes to {out / 'run.rrd'})",

@@ -127,7 +127,8 @@ def open_job_dataset(args):
     A dataset without frames is a ValueError naming the folder."""
     from fmapping.datasets import open_dataset
 
-    ds = open_dataset(args.data, camera=getattr(args, "camera", None), max_frames=getattr(args, "max_frames", None))
+    ds = open_dataset(args.data, camera=getattr(args, "camera", None), max_frames=getattr(args, "max_frames", None),
+                      fps=getattr(args, "fps", None), topic=getattr(args, "topic", None))
     if len(ds) == 0:
         raise ValueError(f"dataset {args.data} has no frames")
     return ds

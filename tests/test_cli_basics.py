@@ -212,3 +212,90 @@ def test_up_stats_get_the_intrinsics_and_the_resolved_config(scene, tmp_path):
     assert not add_run_info(out, info, since=started) and json.loads(stats.read_text()) == {"old": 1}
     stats.unlink()
     assert not add_run_info(out, info, since=started)  # the mapper wrote none (failed early)
+
+
+# ------------------------------------------------------------------ the sources on the command line
+def _image_folder(folder: Path, n: int = 3) -> Path:
+    import cv2
+    import numpy as np
+
+    folder.mkdir()
+    for i in range(n):
+        cv2.imwrite(str(folder / f"{i:03d}.png"), np.full((24, 32, 3), 60 * i, np.uint8))
+    return folder
+
+
+def test_data_help_lists_the_sources_and_fps_topic_reach_the_dataset(tmp_path, capsys):
+    import argparse
+
+    from fmapping.cli import build_parser, main
+    from fmapping.pipeline import open_job_dataset
+
+    parser = build_parser()
+    subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    for cmd in ("info", "map", "slam", "up"):
+        text = " ".join(subs[cmd].format_help().split())
+        for source in ("image folder", "video", "EuRoC", "ScanNet", "rosbag2", "MCAP", "camera:N"):
+            assert source in text, (cmd, source)
+    for cmd in ("info", "map", "slam"):  # fps = timestamps of an image folder / video; topic = a bag's images
+        a = parser.parse_args([cmd, "--data", "x", "--fps", "12.5", "--topic", "/cam/image_raw"]
+                              + (["--out", "o"] if cmd != "info" else []))
+        assert a.fps == 12.5 and a.topic == "/cam/image_raw"
+
+    images = _image_folder(tmp_path / "imgs")
+    ds = open_job_dataset(argparse.Namespace(data=str(images), camera="30,30,16,12", max_frames=None, fps=10.0,
+                                             topic=None))
+    assert [round(t, 6) for t in ds.timestamps] == [0.0, 0.1, 0.2]
+    capsys.readouterr()
+    assert main(["info", "--data", str(images), "--camera", "30,30,16,12", "--fps", "10"]) == 0
+    assert '"fps": 10.0' in capsys.readouterr().out
+    assert main(["info", "--data", str(images), "--camera", "30,30,16,12", "--topic", "/x"]) == 2
+    assert "topic= applies to rosbag sources" in capsys.readouterr().err
+
+
+def test_up_takes_a_live_camera_with_its_intrinsics_and_passes_them_to_play(tmp_path, monkeypatch, capsys):
+    """`fmapping up --data camera:N` needs --camera (one-line error otherwise) and hands both to io play;
+    the launcher itself never opens the device (stats.json gets the --camera given)."""
+    from fmapping import launcher
+    from fmapping.cli import main
+
+    out = tmp_path / "up"
+    assert main(["up", "--data", "camera:0", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "camera:0" in err and "--camera" in err and len(err.strip().splitlines()) == 1
+    assert main(["up", "--data", "camera:front", "--camera", "500,500,320,240", "--out", str(out)]) == 2
+    assert "camera:N" in capsys.readouterr().err
+
+    started = {}
+
+    class FakeProc:  # records what would run; no process starts
+        def __init__(self, name, argv, out, env):
+            started[name] = argv
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(launcher, "Proc", FakeProc)
+    monkeypatch.setattr(launcher, "_wait_ready", lambda procs, timeout: None)
+    monkeypatch.setattr(launcher, "_monitor", lambda procs, *a, **k: 0)
+    monkeypatch.setattr(launcher, "_stop_all", lambda *a, **k: None)
+    opened = []
+    monkeypatch.setattr("fmapping.datasets.open_dataset", lambda *a, **k: opened.append(a) or None)
+    assert main(["up", "--data", "camera:0", "--camera", "500,500,320,240", "--poses", "gt", "--view", "save",
+                 "--insecure", "--out", str(out)]) == 0
+    play = started["play"]
+    assert play[play.index("--data") + 1] == "camera:0" and play[play.index("--camera") + 1] == "500,500,320,240"
+    assert opened == []  # the device is play's alone
+    info = launcher.run_info("camera:0", "gt", None, None, launcher.LauncherOptions(), "500,500,320,240")
+    assert info["dataset"] == {"root": "camera:0", "kind": "camera", "live": True, "frames": None,
+                               "camera_source": "500,500,320,240"}
+
+
+def test_up_passes_camera_for_a_recorded_source_too(tmp_path, monkeypatch):
+    from fmapping import launcher
+
+    images = _image_folder(tmp_path / "imgs")
+    info = launcher.run_info(images, "tracker", None, None, launcher.LauncherOptions(), "30,30,16,12")
+    assert info["dataset"]["kind"] == "images" and info["dataset"]["camera"]["fx"] == 30.0
+    with pytest.raises(Exception, match="no camera intrinsics"):
+        launcher.run_info(images, "tracker", None, None, launcher.LauncherOptions())
