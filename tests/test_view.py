@@ -1,11 +1,14 @@
 """``io view`` (services/io/view.py): what the zenoh-free Viewer logs (trajectories, keyframes,
-lag, map points, final map and mesh; depth only when the run uses depth), the .rrd it writes read
+lag, map points, final map and mesh; depth only when the run uses depth; colour and depth
+rendered from the field snapshot and a live mesh, rate-limited), the .rrd it writes read
 back with ``rerun rrd print``, serving the web viewer on a given port, and the view options
 ``fmapping up --view live|save`` passes."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
+import threading
 import shutil
 import subprocess
 import sys
@@ -26,9 +29,16 @@ class Capture:
 
     def __init__(self):
         self.logged: list[tuple[str, str, bool]] = []
+        self.archetypes: list[tuple[str, object]] = []
+        self._lock = threading.Lock()  # the service's Viewer logs from its preview thread too
 
     def log(self, entity, archetype, static=False):
-        self.logged.append((entity, type(archetype).__name__, static))
+        with self._lock:
+            self.logged.append((entity, type(archetype).__name__, static))
+            self.archetypes.append((entity, archetype))
+
+    def last(self, entity):
+        return [a for e, a in self.archetypes if e == entity][-1]
 
     def set_time(self, *a, **k):
         pass
@@ -173,3 +183,181 @@ def test_fmapping_up_view_options(tmp_path, monkeypatch):
     assert build_parser().parse_args(["up"]).view == "auto"
     with pytest.raises(ValueError):
         view_mode("browser")
+
+
+# ---------------------------------------------------------------- rendered views and the live mesh
+BLOB_CENTRE, BLOB_HALF = np.array([0.0, 0.0, 2.0]), 0.3  # an opaque cube 2 m in front of the camera at the origin
+BOX = np.array([[-1.0, -1.0, 0.5], [1.0, 1.0, 3.5]])
+
+
+def _blob_snapshot(frame_seq: int = 5, **config) -> P.FieldSnapshot:
+    """A small CP field over ``BOX`` that is empty but for an opaque cube (``BLOB_*``): one density
+    component whose three lines are constant inside the cube's extent and 0 outside, so that
+    ``raw = 60`` inside (``softplus(60 - 10)`` = 50 / m: opaque within centimetres)."""
+    import torch
+
+    from fmapping.field import FieldConfig, build_field
+
+    cfg = FieldConfig(resolution=64, density_components=2, appearance_components=2, app_features=4, hidden=8)
+    field = build_field(cfg, BOX)
+    with torch.no_grad():
+        field.density_lines.zero_()
+        for a in range(3):
+            nodes = np.linspace(BOX[0, a], BOX[1, a], cfg.resolution)
+            inside = np.abs(nodes - BLOB_CENTRE[a]) <= BLOB_HALF
+            field.density_lines[a, 0, :, 0] = torch.as_tensor(np.where(inside, 60.0 ** (1 / 3), 0.0))
+    conf = {"field": dataclasses.asdict(cfg), "near": 0.1, "far": 6.0, "n_coarse": 64, "n_fine": 16, **config}
+    return P.FieldSnapshot(version=1, kind="cp", config=conf, aabb=BOX.copy(), arrays=field.snapshot(),
+                           frame_seq=frame_seq, frame_c2w=np.eye(4))
+
+
+class Clock:
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self):
+        return self.t
+
+
+def _image_array(arch) -> np.ndarray:
+    """The pixels of a logged rr.DepthImage (float32) as (H, W)."""
+    fmt = arch.image_format()
+    values = arch.buffer.as_arrow_array()[0].values.to_numpy(zero_copy_only=False)
+    return np.frombuffer(values.tobytes(), np.float32).reshape(fmt.height, fmt.width)
+
+
+def _posed(viewer, n: int = 6, depth: bool = True) -> None:
+    """Frames 0..n-1 at the origin looking down +z (the blob ahead), tracker and GT poses."""
+    for i in range(n):
+        viewer.on_frame(_frame(i, depth=depth))
+        for src in ("gt", "tracker"):
+            viewer.on_pose(P.Pose(seq=i, timestamp=float(i), c2w=np.eye(4), source=src))
+
+
+def test_field_snapshot_renders_depth_and_colour_next_to_the_input_image_and_a_mesh():
+    cap, clock = Capture(), Clock()
+    v = view.Viewer(cap, clock=clock, render_width=160)  # RGB-only run (no --depth-every)
+    _posed(v)
+    v.on_field(_blob_snapshot())
+    assert v.renders == 1 and v.meshes == 1
+    ents = cap.entities()
+    assert {"world/camera/rendered", "world/camera/rendered/rgb", "world/camera/rendered/depth",
+            "world/map/mesh_live", "world/camera/image"} <= ents
+    assert "world/camera/image/depth" not in ents  # the dataset's depth stays out of an RGB-only run
+    # rendered at the newest frame's pose, in the camera's tree, at the preview size (never enlarged: 32 px wide)
+    pin = cap.last("world/camera/rendered")
+    assert [int(x) for x in pin.resolution.as_arrow_array().to_pylist()[0]] == [32, 24]
+    depth = _image_array(cap.last("world/camera/rendered/depth"))
+    assert depth.shape == (24, 32)
+    front = BLOB_CENTRE[2] - BLOB_HALF  # 1.7 m: the cube's face towards the camera
+    # the cube spans |x|, |y| <= 0.3 at z = 1.7: pixels within 0.3 * 40 / 1.7 = 7 px of the centre see it
+    centre = depth[11 - 4:13 + 4, 15 - 4:17 + 4]
+    assert np.all(np.abs(centre - front) < 0.08), centre
+    assert depth[0, 0] == 0 and depth[-1, -1] == 0  # the corners see empty space: no depth
+    rgb = cap.last("world/camera/rendered/rgb")
+    assert rgb.image_format().width == 32
+    mesh = cap.last("world/map/mesh_live")
+    faces = mesh.triangle_indices.as_arrow_array()
+    verts = np.array(mesh.vertex_positions.as_arrow_array().to_pylist())
+    assert len(faces) > 0 and np.abs(verts - BLOB_CENTRE).max() < BLOB_HALF + 0.1
+
+
+def test_rendered_view_is_the_blob_depth_at_the_preview_resolution():
+    from fmapping.camera import PinholeCamera
+
+    field, rs = view.field_of_snapshot(_blob_snapshot())
+    assert (rs.n_coarse, rs.n_fine) == view.PREVIEW_SAMPLES  # capped: a preview needs no more
+    big = {"fx": 500.0, "fy": 500.0, "cx": 319.5, "cy": 239.5, "width": 640, "height": 480}
+    cam = view.preview_camera(big, 160)
+    assert (cam.width, cam.height) == (160, 120) and cam == PinholeCamera.from_dict(big).resized(160, 120)
+    rgb, depth = view.render_view(field, rs, cam, np.eye(4))
+    assert rgb.shape == (120, 160, 3) and rgb.dtype == np.uint8 and depth.dtype == np.float32
+    # the face is 0.6 m wide at 1.7 m: 0.6 * 125 / 1.7 = 44 px wide in the preview (fx = 125)
+    assert np.all(np.abs(depth[60 - 15:60 + 15, 80 - 15:80 + 15] - 1.7) < 0.08)
+    assert (depth > 0).sum() == pytest.approx(44 * 44, rel=0.2)
+
+
+def test_renders_and_meshes_are_rate_limited_and_the_mesh_comes_at_the_end():
+    cap, clock = Capture(), Clock()
+    v = view.Viewer(cap, clock=clock, render_every=2.0, mesh_every=10.0)
+    _posed(v)
+
+    def field_after(dt, seq):
+        clock.t += dt
+        v.render_seconds = v.mesh_seconds = 0.0  # as if instant: the duty limit is tested below
+        v.on_field(_blob_snapshot(frame_seq=seq))
+
+    field_after(0.0, 1)
+    field_after(1.0, 2)  # within 2 s: no render, no mesh
+    assert (v.renders, v.meshes) == (1, 1)
+    field_after(1.5, 3)
+    assert (v.renders, v.meshes) == (2, 1)
+    field_after(8.0, 4)
+    assert (v.renders, v.meshes) == (3, 2)
+    # a render that took 1 s (a loaded machine) holds the next one back 5 s (20 % of a core), not 2
+    v.render_seconds = 1.0
+    clock.t += 3.0
+    v.on_field(_blob_snapshot(frame_seq=5))
+    assert v.renders == 3
+    field_after(2.1, 6)
+    assert v.renders == 4
+    v.finish()  # the mesh of the newest field, whatever the time
+    assert v.meshes == 3
+
+    only_end = view.Viewer(Capture(), clock=Clock(), render_every=0, mesh_every=0)  # 0: never / only at the end
+    _posed(only_end)
+    only_end.on_field(_blob_snapshot())
+    assert (only_end.renders, only_end.meshes) == (0, 0)
+    only_end.finish()
+    assert (only_end.renders, only_end.meshes) == (0, 1) and "world/map/mesh_live" in only_end.rec.entities()
+
+
+def test_the_final_mesh_ply_replaces_the_live_mesh_at_the_end():
+    cap = Capture()
+    v = view.Viewer(cap, clock=Clock())
+    _posed(v)
+    v.on_field(_blob_snapshot())
+    v.finish(final_mesh_logged=True)
+    assert v.meshes == 1  # no end-of-run live mesh: the mapper's own (finer, occlusion-culled) one is there
+    assert [k for e, k, _ in cap.logged if e == "world/map/mesh_live"] == ["Mesh3D", "Clear"]
+
+
+def test_the_service_renders_on_its_own_thread_and_survives_a_forged_snapshot():
+    cap, errors = Capture(), []
+    v = view.Viewer(cap, background=True, on_error=errors.append)
+    _posed(v)
+    forged = _blob_snapshot()
+    forged.config["field"]["resolution"] = 10 ** 6  # would be gigabytes: refused before building
+    v.on_field(forged)
+    assert v.worker.wait_idle(60) and len(errors) == 1 and "parameters" in str(errors[0])
+    v.render_every = v.mesh_every = 0.0  # next snapshot: no rate limit in the way of the end mesh only
+    v.on_field(_blob_snapshot())
+    v.finish()
+    assert v.worker is None and v.meshes == 1 and len(errors) == 1
+    assert "world/map/mesh_live" in cap.entities() and "world/camera/image/depth" not in cap.entities()
+
+
+def test_a_snapshot_before_any_pose_renders_from_its_own_frame_pose():
+    cap = Capture()
+    v = view.Viewer(cap, clock=Clock())
+    v.on_frame(_frame(0, depth=False))
+    v.on_field(_blob_snapshot(frame_seq=0))
+    assert v.renders == 1 and "world/camera/rendered/depth" in cap.entities()
+    no_camera = view.Viewer(Capture(), clock=Clock())  # neither a frame nor the snapshot says the camera
+    no_camera.on_field(_blob_snapshot())
+    assert no_camera.renders == 0
+
+
+def test_saved_recording_of_an_rgb_only_run_with_a_field_has_rendered_but_no_dataset_depth(tmp_path):
+    rec = rr.RecordingStream("fmapping_test")
+    rec.save(str(tmp_path / "run.rrd"))
+    v = view.Viewer(rec)
+    _posed(v)
+    v.on_field(_blob_snapshot())
+    v.finish()
+    rec.disconnect()
+    text = _rrd_entities(tmp_path / "run.rrd", tmp_path)
+    for ent in ("/world/camera/rendered/rgb", "/world/camera/rendered/depth", "/world/map/mesh_live",
+                "/world/camera/image"):
+        assert ent in text, ent
+    assert "/world/camera/image/depth" not in text
