@@ -60,7 +60,7 @@ from fmapping.losses import (expected_depth_l1, photometric_loss, sample_consist
 from fmapping.render import alpha_to_weights, composite, raw_to_alpha, render_rays, sample_deltas
 from fmapping.sampling import ray_aabb, sample_pdf, stratified
 from fmapping.sampling.sliding_window import sliding_window_sample
-from fmapping.sparse_points import SparsePointsConfig, TrackTriangulator, aabb_from_points
+from fmapping.sparse_points import SparsePointsConfig, TrackTriangulator, aabb_from_points, seen_depth_box
 
 STATE_VERSION = 1
 
@@ -478,7 +478,7 @@ class Mapper:
                                     self.camera, cfg.bbox_margin)
             if b is None and cfg.bounds == "points":
                 self._sparse.flush()
-                b = aabb_from_points(self._sparse.points, poses[:, :3, 3], margin=cfg.bbox_margin)
+                b = self._points_box()
             if b is None:
                 b = aabb_from_poses(poses, self.camera, cfg.near, cfg.far, cfg.bbox_margin)
             box = torch.as_tensor(b, dtype=torch.float32)
@@ -827,14 +827,27 @@ class Mapper:
         self._stats.append(st)
         return st
 
+    def _points_box(self) -> Optional[np.ndarray]:
+        """The box of the triangulated points and camera centres, widened to hold what each camera saw out
+        to the depth of its own points (:func:`fmapping.sparse_points.seen_depth_box`), plus the margin."""
+        ids = [i for i in self._sparse.frame_ids if i in self._poses]
+        if not ids:
+            return None
+        poses = np.stack([self._poses[i].numpy() for i in ids])
+        b = aabb_from_points(self._sparse.points, poses[:, :3, 3], margin=self.cfg.bbox_margin)
+        seen = seen_depth_box(poses, [self._sparse.frame_depths(i)[1] for i in ids], self.camera)
+        if b is None or seen is None:
+            return b
+        pad = np.maximum(self.cfg.bbox_margin, 0.05 * (seen[1] - seen[0]))
+        return np.stack([np.minimum(b[0], seen[0] - pad), np.maximum(b[1], seen[1] + pad)])
+
     def _grow_box(self) -> None:
         """Re-fit the box to the triangulated points when they leave it (the camera explores): the box
         only grows, the field is resampled onto it (:meth:`fmapping.field.Field.refit_box`)."""
         cfg = self.cfg
         if self._aabb_given is not None or cfg.bounds != "points" or self._sparse is None:
             return
-        centres = np.stack([p[:3, 3].numpy() for p in self._poses.values()])
-        b = aabb_from_points(self._sparse.points, centres, margin=cfg.bbox_margin)
+        b = self._points_box()
         if b is None:
             return
         cur = self.aabb.detach().cpu().numpy().astype(np.float64)

@@ -226,7 +226,7 @@ class TrackTriangulator:
 
 
 def aabb_from_points(points: np.ndarray, centres: Optional[np.ndarray] = None, percentile: float = 0.5,
-                     margin: float = 0.1, rel_margin: float = 0.15) -> Optional[np.ndarray]:
+                     margin: float = 0.1, rel_margin: float = 0.1) -> Optional[np.ndarray]:
     """Box (2, 3) around scene points (robust ``percentile`` / ``100 - percentile`` per axis), the
     camera ``centres`` and a margin of ``max(margin, rel_margin * extent)`` per axis; None for
     fewer than 20 points."""
@@ -241,3 +241,28 @@ def aabb_from_points(points: np.ndarray, centres: Optional[np.ndarray] = None, p
         lo, hi = np.minimum(lo, c.min(0)), np.maximum(hi, c.max(0))
     pad = np.maximum(margin, rel_margin * (hi - lo))
     return np.stack([lo - pad, hi + pad])
+
+
+def seen_depth_box(c2w: np.ndarray, depths: list, camera: PinholeCamera, quantile: float = 50.0,
+                   stretch: float = 1.0, min_points: int = 10) -> Optional[np.ndarray]:
+    """Box (2, 3) of the view frusta of cameras ``c2w`` (N, 4, 4), each cut at the typical depth of its own
+    sparse points (``quantile`` of ``depths[i]``, times ``stretch``); frames with fewer than
+    ``min_points`` depths take the median cut of the others. Where texture is too weak for points
+    (a plain upper wall, a ceiling), the camera still saw the scene out to about that depth: the box
+    must hold it. None when no frame has enough depths."""
+    cuts = [float(np.percentile(d, quantile)) * stretch if len(d) >= min_points else None for d in depths]
+    known = [c for c in cuts if c is not None]
+    if not known:
+        return None
+    fill = float(np.median(known))
+    w, h = camera.width, camera.height
+    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]], np.float64)
+    rays = np.stack([(corners[:, 0] - camera.cx) / camera.fx, (corners[:, 1] - camera.cy) / camera.fy, np.ones(4)], -1)
+    pts = []
+    for pose, cut in zip(np.asarray(c2w, np.float64).reshape(-1, 4, 4), cuts):
+        far = rays * (fill if cut is None else cut)
+        pts.append(far @ pose[:3, :3].T + pose[:3, 3])
+        pts.append(pose[None, :3, 3])
+    allp = np.concatenate(pts)
+    return np.stack([allp.min(0), allp.max(0)])
+
