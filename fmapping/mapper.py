@@ -125,8 +125,8 @@ class MapperConfig:
     depth_weight: float = 0.5
     # --- sparse points: KLT tracks triangulated with the given poses (fmapping.sparse_points)
     sparse: SparsePointsConfig = dc_field(default_factory=SparsePointsConfig)
-    sparse_depth_weight: float = 0.5  # weight of the sparse depth term (0: off); pulls rays onto triangulated points
-    sparse_rays: int = 128  # rays per iteration through triangulated points
+    sparse_depth_weight: float = 1.0  # weight of the sparse depth term (0: off); pulls rays onto triangulated points
+    sparse_rays: int = 256  # rays per iteration through triangulated points
     # --- per-frame affine colour (auto exposure / white balance): rendered = (1 + a) * colour + b per channel
     exposure: bool = True
     lr_exposure: float = 0.001

@@ -28,12 +28,12 @@ from fmapping.tracking.features import KltConfig, at_width, detect_corners, klt_
 
 @dataclass
 class SparsePointsConfig:
-    max_corners: int = 400  # corners tracked at a time
+    max_corners: int = 1000  # corners tracked at a time
     min_track: int = 3  # observations a track needs to be triangulated
     max_track: int = 15  # a track is triangulated (and restarted) after this many observations
     min_parallax_deg: float = 1.5  # rays of a point must span at least this angle
     full_weight_parallax_deg: float = 6.0  # parallax at which a point gets weight 1
-    max_reproj_px: float = 1.0  # at 320 px image width (scaled with the width)
+    max_reproj_px: float = 1.5  # at 320 px image width (scaled with the width)
     half_window: int = 7  # KLT half window at 320 px width
     min_distance: int = 8  # pixels between corners at 320 px width
 
