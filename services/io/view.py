@@ -445,15 +445,16 @@ class Viewer:
                 self.rec.log("world/map/mesh_live", rr.Clear(recursive=False))
             self.meshes += 1
 
-    def finish_field(self, final_mesh_logged: bool = False, timeout: float = 60.0) -> None:
+    def finish_field(self, final_mesh_logged: bool = False, timeout: float = 60.0, interrupted: bool = False) -> None:
         """At the end: let the pending preview finish, then log the live mesh of the newest field
         (unless ``--mesh-every`` < 0), or clear it when the mapper's final mesh.ply was logged
-        (``world/map/mesh``: two meshes on top of each other would hide the final one)."""
+        (``world/map/mesh``: two meshes on top of each other would hide the final one). ``interrupted``
+        (a stop signal): no waiting for a preview and no end mesh, a service must stop promptly."""
         if self.worker is not None:
-            self.worker.close(timeout)
+            self.worker.close(0.0 if interrupted else timeout)
             self.worker = None
         s = self.field
-        if s is None:
+        if s is None or interrupted:
             return
         if final_mesh_logged:
             self.rec.set_time("frame", sequence=max(s.frame_seq, 0))
@@ -531,8 +532,8 @@ class Viewer:
             logged.append(entity)
         return logged
 
-    def finish(self, final_mesh_logged: bool = False) -> None:
-        self.finish_field(final_mesh_logged)
+    def finish(self, final_mesh_logged: bool = False, interrupted: bool = False) -> None:
+        self.finish_field(final_mesh_logged, interrupted=interrupted)
         for src in self.traj:
             self.log_trajectory(src)
         self.log_keyframes(self.keyframes)  # their final (bundle-adjusted, loop-closed) poses
@@ -624,7 +625,7 @@ def run(svc: Service, args, rec) -> int:
     serve_until_end(svc, peers, lambda ch, key, data: handle_message(svc, view, peers, ch, key, data, wait_done),
                     wait_done, args.final_timeout)
     final = view.log_final_outputs(args.final_outputs, since=started) if args.final_outputs else []
-    view.finish(final_mesh_logged="world/map/mesh" in final)
+    view.finish(final_mesh_logged="world/map/mesh" in final, interrupted=svc.shutdown.requested)
     if serving(args) and not args.exit_at_end and not svc.shutdown.requested:
         svc.log.info("sequence ended; still serving the viewer (Ctrl-C to quit)")
         while not svc.shutdown.wait(0.5):
