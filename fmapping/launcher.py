@@ -448,9 +448,11 @@ def run_up(args) -> int:
     if opts.tracker_frontend not in ("mono", "map"):
         raise ValueError(f"launcher.tracker_frontend must be 'mono' or 'map', got {opts.tracker_frontend!r}")
     mono = poses == "tracker" and opts.tracker_frontend == "mono"
+    live = isinstance(data, str)  # up_data: a live camera is its camera:N string, a dataset a Path
     mapper_cfg = with_user_box(mapper_cfg, getattr(args, "bbox", None), out)
     info = run_info(data, poses, mapper_cfg, tracker_cfg, opts, camera)  # errors in data or configs: before any process
     started = time.time()
+    tracker_state(out).unlink(missing_ok=True)  # an earlier run's keyframe: not this run's world
     if not insecure:
         from services.credentials import make_run_credentials
 
@@ -462,6 +464,8 @@ def run_up(args) -> int:
     mapper_argv += first_wait
     if poses == "tracker" and not mono:
         mapper_argv += ["--unposed-init", "yes"]  # the map tracker tracks only once the mapper has a map
+    if poses == "tracker" and not live:
+        mapper_argv += ["--resent-frames"]  # play sends a restarted tracker what it missed (resend_argv)
     if mapper_cfg:
         mapper_argv += ["--config", str(mapper_cfg)]
     record_src = poses
@@ -505,6 +509,8 @@ def run_up(args) -> int:
             later.append(procs["view"])
         if poses == "tracker":
             targv = py + ["services.tracker", "--frontend", opts.tracker_frontend] + net("tracker") + threads
+            if mono:  # a restarted tracker re-localises against its last keyframe (same world frame and scale)
+                targv += ["--state", str(tracker_state(out))]
             if tracker_cfg:
                 targv += ["--config", str(tracker_cfg)]
             procs["tracker"] = Proc("tracker", targv, out, env)
@@ -523,7 +529,7 @@ def run_up(args) -> int:
         play_argv = py + ["services.io", "play", "--data", str(data), "--fps", str(args.fps or 0),
                           "--window", str(window), "--ack-from", "mapper", "--wait-for", ",".join(wait_for),
                           "--start-timeout", str(play_start_timeout)] + (["--camera", camera] if camera else []) \
-            + net("play")
+            + resend_argv(poses, live) + net("play")
         procs["play"] = Proc("play", play_argv, out, env)
         if view == "live":
             print(f"fmapping up: live viewer at {live_url(args)} (the recording also goes to {out / 'run.rrd'})",
@@ -553,6 +559,20 @@ def run_up(args) -> int:
             creds.remove()  # per-run passwords: useless once the router is gone
         for sig, h in old_handlers.items():
             signal.signal(sig, h)
+
+
+def tracker_state(out: Path) -> Path:
+    """Where the mono tracker keeps its current keyframe for a restart (``services.tracker --state``)."""
+    return out / "tracker" / "state.npz"
+
+
+def resend_argv(poses: str, live: bool) -> list[str]:
+    """``io play --resend-to``: the consumers that get the frames they never handled again after a
+    restart (a resumed mapper from its checkpoint's frame on, a restarted tracker from its last
+    acknowledgement on); a live camera cannot go back."""
+    if live:
+        return []
+    return ["--resend-to", "mapper,tracker" if poses == "tracker" else "mapper"]
 
 
 def play_wait_for(poses: str, view: bool = True) -> list[str]:

@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
 pytest.importorskip("zenoh")
@@ -53,49 +54,90 @@ def test_supervise_restarts_crashes_with_backoff_and_a_bound(capsys):
     assert "restarting it in 1 s (1/3)" in capsys.readouterr().err
 
 
-@pytest.mark.slow
-def test_fmapping_up_survives_kill_9_of_the_mapper(scene, tmp_path):
+FAULT_FRAMES = 48  # the kill tests' scene: 160x120, enough for the mono tracker's bootstrap and late anchor
+
+
+@pytest.fixture(scope="module")
+def fault_scene(tmp_path_factory):
+    """(scene, up config, clean runs by pose source): the data the kill tests disturb, and the
+    undisturbed runs of it they are measured against (made once, on first use)."""
     import yaml
 
+    from fmapping.synthetic import generate_scene
+
+    root = tmp_path_factory.mktemp("faults")
+    scene = root / "scene"
+    generate_scene(scene, seed=2, frames=FAULT_FRAMES, size=(160, 120), max_cloud_points=2000, mesh_spacing=0.2)
+    cfg = root / "up.yaml"
+    cfg.write_text(yaml.safe_dump({"mapper": SMALL_MAPPER, "launcher": {"timeout": 400, "threads": 1,
+                                                                         "view": False}}))
+    return scene, cfg, {}
+
+
+def _clean_run(fault_scene, poses: str):
+    from fault_helpers import run_with_fault
+
+    scene, cfg, clean = fault_scene
+    if poses not in clean:
+        clean[poses] = run_with_fault(scene, scene.parent / f"clean-{poses}", poses, cfg)
+        assert clean[poses].rc == 0, clean[poses].log[-3000:]
+    return clean[poses]
+
+
+def _mapped(run) -> dict:
+    """{frame timestamp: c2w} of OUT/traj.txt (the mapper's trajectory: every frame it mapped)."""
     from fmapping.trajectory import read_tum_trajectory
 
-    cfg = tmp_path / "up.yaml"
-    cfg.write_text(yaml.safe_dump({"mapper": SMALL_MAPPER, "launcher": {"timeout": 240, "threads": 1,
-                                                                         "view": False}}))
-    out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "fmapping.cli", "up", "--data", str(scene), "--poses", "gt",
-                             "--out", str(out), "--config", str(cfg)], cwd=ROOT, env=subprocess_env(),
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        deadline = time.monotonic() + 180
-        killed = None
-        while killed is None:
-            assert proc.poll() is None and time.monotonic() < deadline, "the mapper never checkpointed"
-            try:
-                st = json.loads((out / "status" / "mapper.json").read_text())
-            except (OSError, ValueError):
-                st = {}
-            if st.get("counters", {}).get("windows", 0) >= 1 and (out / "checkpoint.pt").is_file():
-                killed = st
-                os.kill(st["pid"], signal.SIGKILL)
-            time.sleep(0.02)
-        rc = proc.wait(timeout=280)
-        log = proc.stdout.read()
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert rc == 0, log[-3000:]
-    assert "mapper exited with code -9; restarting it" in log
-    up = json.loads((out / "up.json").read_text())
-    assert up["restarts"] == {"mapper": 1}
-    stats = json.loads((out / "stats.json").read_text())
-    assert stats["counters"]["resumes"] == 1 and stats["final"] is True
-    ts, _ = read_tum_trajectory(out / "traj.txt")
-    lost = 14 - len(ts)
-    print(f"\n[supervision] mapper killed at frame {killed['frame_seq']} (windows {killed['counters']['windows']}); "
-          f"restarted once, resumed from the checkpoint; {len(ts)} of 14 frames mapped ({lost} lost)")
-    # at most the frames play had in flight (window 4) plus those of the update in progress
-    assert lost <= 4 + SMALL_MAPPER["new_frames_per_window"] + 2
+    ts, poses = read_tum_trajectory(run.out / "traj.txt")
+    return {round(float(t), 6): p for t, p in zip(ts, poses)}
+
+
+@pytest.mark.slow
+def test_kill_9_of_the_mapper_loses_at_most_one_window_against_an_undisturbed_run(fault_scene, tmp_path):
+    """kill -9 of the mapper mid-run under fmapping up (GT poses): restarted, it resumes from its
+    checkpoint, play sends the frames after the checkpoint again, and the run maps the frames an
+    undisturbed run of the same data maps, less at most one window (the update in progress)."""
+    from fault_helpers import run_with_fault
+
+    scene, cfg, _ = fault_scene
+    clean = _clean_run(fault_scene, "gt")
+    run = run_with_fault(scene, tmp_path / "out", "gt", cfg, kill="mapper", at_frame=FAULT_FRAMES // 2)
+    assert run.rc == 0, run.log[-3000:]
+    assert "mapper exited with code -9; restarting it" in run.log
+    assert run.up["restarts"] == {"mapper": 1}
+    assert run.stats["counters"]["resumes"] == 1 and run.stats["final"] is True
+    resent = run.up["status"]["play"]["counters"].get("frames_resent", 0)
+    lost = set(_mapped(clean)) - set(_mapped(run))
+    print(f"\n[supervision] mapper killed at frame {run.killed_at}: restarted once, resumed from the checkpoint "
+          f"at frame {run.stats['counters']['resumed_at_seq']}, {resent} frames sent again; "
+          f"{run.frames} of {clean.frames} frames mapped ({len(lost)} lost)")
+    assert len(lost) <= SMALL_MAPPER["new_frames_per_window"]
+    assert run.frames >= clean.frames - SMALL_MAPPER["new_frames_per_window"]
+
+
+@pytest.mark.slow
+def test_kill_9_of_the_tracker_relocalises_and_loses_at_most_one_window(fault_scene, tmp_path):
+    """kill -9 of the (mono) tracker mid-run under fmapping up: restarted, it re-localises against the
+    keyframe it saved, play sends it the frames it never answered, and the run maps the frames of an
+    undisturbed run (less at most one window) with poses in the same world frame: the trajectory's
+    error against the GT, unaligned, stays that of the undisturbed run."""
+    from fault_helpers import run_with_fault
+
+    scene, cfg, _ = fault_scene
+    clean = _clean_run(fault_scene, "tracker")
+    run = run_with_fault(scene, tmp_path / "out", "tracker", cfg, kill="tracker", at_frame=FAULT_FRAMES // 2)
+    assert run.rc == 0, run.log[-3000:]
+    assert "tracker exited with code -9; restarting it" in run.log and run.up["restarts"] == {"tracker": 1}
+    tc = run.up["status"]["tracker"]["counters"]
+    assert "bootstrap_frame" not in tc and tc["resumed_at"] > run.killed_at, tc  # re-localised, no new bootstrap
+    se3 = {name: r.metrics["trajectory"]["ate_se3_cm"] for name, r in (("clean", clean), ("killed", run))}
+    lost = set(_mapped(clean)) - set(_mapped(run))
+    print(f"\n[supervision] tracker killed at frame {run.killed_at}: restarted once, re-localised at frame "
+          f"{tc['resumed_at']} against keyframe {tc['resume_keyframe']} ({tc['resume_points']} landmarks); "
+          f"{run.frames} of {clean.frames} frames mapped ({len(lost)} lost); ATE (GT frame, no alignment) "
+          f"{se3['killed']:.2f} cm vs {se3['clean']:.2f} cm undisturbed (Sim3 {run.ate_cm:.2f} vs {clean.ate_cm:.2f})")
+    assert len(lost) <= SMALL_MAPPER["new_frames_per_window"]
+    assert se3["killed"] <= 1.5 * se3["clean"]
 
 
 @pytest.mark.slow
@@ -151,3 +193,52 @@ def test_mapper_skips_the_frames_a_restarted_pose_source_will_never_answer(datas
     assert core.seq_of_fid[-1] == 5  # the answered one was mapped, in order
     feed(core, dataset, [7, 8], source="tracker")  # the new tracker's frames go on as usual
     assert core.ack == 8 and core.seq_of_fid[-2:] == [7, 8]
+
+
+def _feed_frames(core, ds, ids) -> dict:
+    """Frames ``ids`` of ``ds`` into a mono TrackerCore, each after its GT pose (as io play sends them);
+    returns the newest Pose per frame."""
+    from fmapping import protocol as P
+
+    newest = {}
+    for i in ids:
+        f = ds[i]
+        core.handle("poses", P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
+        for _, m in core.handle("frames", P.encode(P.frame_from_dataset(f, seq=i))):
+            newest[m.seq] = m
+    return newest
+
+
+def test_a_restarted_mono_tracker_relocalises_against_its_saved_keyframe(room320, tmp_path):
+    """The tracker keeps its current keyframe (image, pose, landmarks) in a state file. A tracker
+    started again with it (a kill -9: everything in memory is gone) re-localises the first frame it
+    gets against that keyframe and tracks on in the same world frame and scale, without a new
+    bootstrap; its poses are as close to the GT as those of a tracker that was never stopped."""
+    from fmapping.datasets import open_dataset
+    from fmapping.metrics import ate
+    from services.tracker import TrackerCore, TrackerServiceOptions
+
+    ds = open_dataset(room320)
+    n, cut = len(ds), 26
+    state = tmp_path / "tracker" / "state.npz"
+    first = TrackerCore(opts=TrackerServiceOptions(state_path=str(state)))
+    _feed_frames(first, ds, range(cut))
+    assert state.is_file() and first.counters.get("states_saved") >= 1
+    saved = int(np.load(state)["index"])
+    assert first.counters.get("bootstrap_frame") < saved < cut
+    again = TrackerCore(opts=TrackerServiceOptions(state_path=str(state)))  # the restarted process
+    assert again.counters.get("resume_keyframe") == saved
+    after = _feed_frames(again, ds, range(cut, n))
+    assert again.counters.get("resumed_at") == cut and again.counters.get("bootstrap_frame", -1) == -1
+    assert sorted(after) == list(range(cut, n)) and all(p.quality > 0 for p in after.values())
+    kf_err = 100 * np.linalg.norm(np.load(state)["c2w"][:3, 3] - ds[saved].c2w[:3, 3])  # what it inherits
+    undisturbed = _feed_frames(TrackerCore(), ds, range(n))
+    gt = np.stack([ds[i].c2w for i in range(cut, n)])
+    err = {name: 100 * ate(np.stack([poses[i].c2w for i in range(cut, n)]), gt, "none")["rmse_m"]
+           for name, poses in (("restarted", after), ("undisturbed", undisturbed))}
+    print(f"\n[resume] tracker restarted at frame {cut}: re-localised against keyframe {saved} "
+          f"({again.counters.get('resume_points')} landmarks); ATE (GT frame, no alignment) of frames {cut}-{n - 1}: "
+          f"{err['restarted']:.2f} cm restarted, {err['undisturbed']:.2f} cm undisturbed; the keyframe was "
+          f"{kf_err:.2f} cm off")
+    # it goes on from the keyframe's pose: its error, on top of the tracking error of a tracker never stopped
+    assert err["restarted"] <= 1.5 * err["undisturbed"] + kf_err

@@ -883,3 +883,87 @@ class MonoFrontend:
 
     def landmarks(self) -> np.ndarray:
         return np.stack(self._lm) if self._lm else np.zeros((0, 3))
+
+    # ================================================================== restart
+    def keyframe_state(self) -> Optional[dict]:
+        """What a restarted front end needs to go on in this world frame and scale (:meth:`resume`):
+        the current keyframe's frame number, grey image and pose, and the landmarks it observed (world
+        points and their pixels there). None before the bootstrap and while the scale is pending."""
+        k = self._kf_index
+        gray = getattr(self, "_kf_gray", None)
+        if not self.initialized or self.scale_pending or k not in self._kf_pose or gray is None:
+            return None
+        seen = {int(o[1]): (o[2], o[3]) for o in self._obs if o[0] == k}
+        if not seen:
+            return None
+        lids = np.array(sorted(seen), np.int64)
+        prev = max((j for j in self._kf_pose if j < k), default=k)  # for a motion guess (resume)
+        return {"index": int(k), "gray": np.asarray(gray, np.uint8), "c2w": self._kf_pose[k].copy(),
+                "world": np.stack([self._lm[i] for i in lids]).astype(np.float64),
+                "uv": np.array([seen[i] for i in lids], np.float64),
+                "prev_index": int(prev), "prev_c2w": self._kf_pose[prev].copy()}
+
+    def resume(self, index: int, rgb: np.ndarray, state: dict) -> Optional[np.ndarray]:
+        """Start from a saved keyframe (``state`` of :meth:`keyframe_state`) instead of a bootstrap:
+        frame ``index`` is located among that keyframe's landmarks (KLT from the keyframe's image,
+        rotated into the view, then PnP: :func:`~fmapping.tracking.loop.locate_in_keyframe`). When
+        it is found, it becomes the first keyframe, at the located pose, holding the located
+        landmarks, and tracking goes on from it in the saved world frame and scale: returns its
+        pose. None when the images do not agree (the front end is unchanged). The pose is searched
+        from guesses along the keyframes' motion, continued at constant velocity up to frame
+        ``index`` (the frames between went by unseen); the guess locating most landmarks wins."""
+        gray = to_u8(rgb)
+        c2w_kf = np.asarray(state["c2w"], np.float64)
+        best = None
+        for guess in resume_guesses(state, index):
+            m = locate_in_keyframe(self.camera, np.asarray(state["gray"], np.uint8),
+                                   np.asarray(state["uv"], np.float64), np.asarray(state["world"], np.float64),
+                                   c2w_kf, gray, guess, self.cfg.klt, self.cfg.loop)
+            if m is not None and (best is None or m.inliers > best.inliers):
+                best = m
+        m = best
+        if m is None or len(m.index) < self.cfg.min_ref_points:
+            return None
+        c2w = orthonormalize(m.c2w)
+        world = np.asarray(state["world"], np.float64)[m.index]
+        self._first_index = self._kf_index = index
+        self._c2w0 = c2w.copy()
+        self._kf_pose = {index: c2w.copy()}
+        self._kf_rgb = {index: rgb}
+        self._window = [index]
+        self._lm = list(world)
+        self._obs = [(index, lid, float(u), float(v)) for lid, (u, v) in enumerate(m.uv)]
+        tr = _Tracks(m.uv, index)
+        tr.lid = np.arange(len(world), dtype=np.int64)
+        self._tracks = tr
+        self._rel = {index: (index, np.eye(4))}
+        self._last_gray = gray
+        self.tracker.reset_motion([c2w])
+        self._set_reference(index, rgb, gray)
+        if self.cfg.loop.enabled:
+            self._kf_images = {index: gray}
+        self.initialized, self.failed, self._buf = True, False, []
+        self.init_info = {"frame": int(index), "resumed_from": int(state["index"]), "points": int(len(world)),
+                          "scale_from": "resumed"}
+        return c2w
+
+
+def resume_guesses(state: dict, index: int, n: int = 8) -> list:
+    """Pose guesses for frame ``index`` after a saved keyframe ``state`` (:meth:`MonoFrontend.keyframe_state`):
+    the keyframe's pose moved on at the velocity between its previous keyframe and it, by 0 to
+    1.5 times the frames in between (``n`` + 1 guesses; the keyframe's pose alone without a previous one)."""
+    import cv2
+
+    c2w, k = np.asarray(state["c2w"], np.float64), int(state["index"])
+    prev, kp = np.asarray(state.get("prev_c2w", c2w), np.float64), int(state.get("prev_index", k))
+    if kp >= k or index <= k:
+        return [c2w]
+    rvec = cv2.Rodrigues(prev[:3, :3].T @ c2w[:3, :3])[0].ravel() / (k - kp)  # per frame, in the camera frame
+    vel = (c2w[:3, 3] - prev[:3, 3]) / (k - kp)  # per frame, in the world
+    out = []
+    for d in np.linspace(0.0, 1.5 * (index - k), n + 1):
+        g = np.eye(4)
+        g[:3, :3] = c2w[:3, :3] @ cv2.Rodrigues(rvec * d)[0]
+        g[:3, 3] = c2w[:3, 3] + vel * d
+        out.append(g)
+    return out

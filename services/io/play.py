@@ -50,12 +50,19 @@ def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--stall-timeout", type=float, default=600.0,
                    help="seconds a live consumer's acknowledgement may stay put while frames wait for it; then "
                         "playback ends with an error (exit code 3) (0 = wait forever)")
+    p.add_argument("--resend-to", default="",
+                   help="comma-separated consumers to which the frames they never handled are sent again (same "
+                        "frame numbers) when they restart: from a restarted tracker's last acknowledgement, or a "
+                        "mapper's resumed one (not for a live camera)")
     p.add_argument("--loop", action="store_true", help="start over at the end (frame numbers keep increasing)")
     p.add_argument("--paused", action="store_true", help="wait for a 'start' or 'resume' control before playing")
     p.add_argument("--no-gt", action="store_true", help="do not publish ground-truth poses on poses/gt")
     p.add_argument("--no-depth", action="store_true", help="do not send depth even when the dataset has it")
     p.add_argument("--no-end-stop", action="store_true", help="do not send the end-of-sequence stop")
     return add_common_args(p)
+
+
+RESEND_MAX = 1024  # frames play remembers for --resend-to (more than any window in flight)
 
 
 class Stalled(RuntimeError):
@@ -77,6 +84,9 @@ class Player:
         self.stop_requested = threading.Event()
         self.seq = -1  # last published frame number
         self.floor: dict[str, int] = {}  # per consumer: newest frame sent before it (re)joined
+        self.resend_to = names(getattr(args, "resend_to", "") or "")
+        self.rewind: Optional[int] = None  # first frame number to send again (a consumer of --resend-to restarted)
+        self.sent: dict[int, tuple[int, int]] = {}  # recent frame number -> (dataset index, loop): what to resend
         svc.subscribe_callback(svc.keys.status(), self._on_status)
         svc.subscribe_callback(svc.keys.control, self._on_control)
 
@@ -90,6 +100,8 @@ class Player:
                 self.floor[st.service] = self.seq
                 if old is not None:
                     self.svc.counters.inc(f"restarts_{st.service}")
+                    if st.service in self.resend_to:
+                        self._request_rewind(st, old)
             self.peers.update(st)
 
     def _on_control(self, key: str, data: bytes) -> None:
@@ -106,6 +118,38 @@ class Player:
         elif ctl.command == "reset":
             self.reset_requested.set()
         self.peers.notify()
+
+    def _request_rewind(self, new: P.Status, old: P.Status) -> None:
+        """A consumer of ``--resend-to`` restarted: the frames after what it has done (a resumed
+        acknowledgement, else the one it had before) go out again, so that it sees them and, e.g.,
+        a restarted tracker re-localises next to its last keyframe instead of frames later."""
+        start = (new.frame_seq if new.frame_seq >= 0 else old.frame_seq) + 1
+        if 0 <= start <= self.seq:
+            self.rewind = start if self.rewind is None else min(self.rewind, start)
+            self.floor[new.service] = start - 1  # it acknowledges them again
+            self.peers.notify()
+
+    def _resend(self) -> None:
+        """Send frames ``rewind`` .. ``seq`` again, with their frame numbers (and GT poses)."""
+        start, self.rewind = self.rewind, None
+        seqs = [s for s in range(start, self.seq + 1) if s in self.sent]
+        for s in seqs:
+            i, loop = self.sent[s]
+            self._publish(self.ds[i], s, loop)
+        self.svc.counters.inc("frames_resent", len(seqs))
+        self.svc.log.info("a consumer restarted: sent frames %d-%d again", start, self.seq)
+
+    def _publish(self, f, seq: int, loop: int) -> None:
+        svc, a = self.svc, self.args
+        stamp = float(f.timestamp) + loop * self.period
+        msg = P.frame_from_dataset(f, seq=seq, with_depth=not a.no_depth)
+        msg.timestamp = stamp
+        if f.c2w is not None and not a.no_gt:
+            svc.publish(svc.keys.poses("gt"), P.Pose(seq=seq, timestamp=stamp,
+                                                     c2w=np.asarray(f.c2w, np.float64), source="gt"))
+            svc.counters.inc("gt_poses")
+        nbytes = svc.publish(svc.keys.frames, msg)
+        svc.counters.inc("bytes_sent", nbytes)
 
     # -- helpers
     def _halt(self) -> bool:
@@ -140,7 +184,7 @@ class Player:
         def ready(p: Peers) -> bool:
             m = self._min_ack()
             return m is None or self.seq - m < window or self._halt() or self.paused.is_set() \
-                or self.reset_requested.is_set()
+                or self.reset_requested.is_set() or self.rewind is not None
 
         # a consumer whose status is older than --ack-timeout drops out of _min_ack; one alive whose
         # acknowledgement does not move for --stall-timeout ends the run (Stalled)
@@ -202,10 +246,12 @@ class Player:
 
     def _play(self, n: Optional[int], live: bool) -> int:
         svc, ds, a = self.svc, self.ds, self.args
-        period = 0.0
-        if not live:
+        self.period = 0.0
+        if live:
+            self.resend_to = []  # a live camera cannot go back
+        else:
             ts = np.asarray(ds.timestamps, np.float64)
-            period = float(ts[-1] - ts[0]) + (float(np.median(np.diff(ts))) if n > 1 else 1.0)
+            self.period = float(ts[-1] - ts[0]) + (float(np.median(np.diff(ts))) if n > 1 else 1.0)
         loop, i = 0, 0
         t_start = time.monotonic()
         sent_at_start = 0
@@ -231,6 +277,9 @@ class Player:
                     t_start, sent_at_start = time.monotonic(), self.seq + 1
             else:
                 self._flow_control()
+                if self.rewind is not None:
+                    self._resend()
+                    continue
                 if self._halt() or self.paused.is_set() or self.reset_requested.is_set():
                     continue
             t0 = time.perf_counter()
@@ -241,17 +290,12 @@ class Player:
                     raise
                 break  # the camera stopped (or --max-frames reached): end of sequence as for a dataset
             seq = self.seq + 1
-            stamp = float(f.timestamp) + loop * period
-            msg = P.frame_from_dataset(f, seq=seq, with_depth=not a.no_depth)
-            msg.timestamp = stamp
-            if f.c2w is not None and not a.no_gt:
-                svc.publish(svc.keys.poses("gt"), P.Pose(seq=seq, timestamp=stamp,
-                                                         c2w=np.asarray(f.c2w, np.float64), source="gt"))
-                svc.counters.inc("gt_poses")
-            nbytes = svc.publish(svc.keys.frames, msg)
+            self._publish(f, seq, loop)
             self.seq = seq
+            if self.resend_to:
+                self.sent[seq] = (i, loop)
+                self.sent.pop(seq - RESEND_MAX, None)
             svc.counters.inc("frames_sent")
-            svc.counters.inc("bytes_sent", nbytes)
             svc.counters.set("frame_index", i)
             svc.counters.set("load_ms", round((time.perf_counter() - t0) * 1e3, 2))
             m = self._min_ack()
@@ -266,7 +310,12 @@ class Player:
             return 0
         if self.ack_from and self.seq >= 0:
             svc.status.update(state="finishing")
-            self._wait_acks(lambda p: self._min_ack() is None or self._min_ack() >= self.seq or self._halt())
+            done = lambda p: self._min_ack() is None or self._min_ack() >= self.seq or self._halt()  # noqa: E731
+            while True:  # a consumer restarting now still gets the frames it never handled
+                self._wait_acks(lambda p: done(p) or self.rewind is not None)
+                if self.rewind is None or self._halt():
+                    break
+                self._resend()
         if not a.no_end_stop:
             svc.publish(svc.keys.control, P.Control("stop", {"reason": "end", "last_seq": int(self.seq)}))
         svc.log.info("end of sequence: %d frames sent", self.seq + 1)

@@ -67,6 +67,9 @@ class MapperServiceOptions:
     final_points: int = 500_000  # map.ply
     max_pending: int = 64  # frames waiting for their pose
     pose_timeout: float = 30.0  # seconds a frame waits for its pose before it is skipped (0 = forever)
+    # the player sends the frames a restarted pose source never handled again (io play --resend-to): the
+    # frames waiting for a pose then wait for the new source's answers instead of being skipped at once
+    resent_frames: bool = False
     max_poses: int = 4096  # poses waiting for their frame
     publish_mapper_poses: bool = True
     write_mesh: bool = True
@@ -104,6 +107,7 @@ class MapperCore(ServiceCore):
         self._arrived: dict[int, float] = {}
         self._source_seq: Optional[int] = None  # the pose source's last status counter
         self._orphaned = -1  # frames up to this one wait for a pose that will never come (source restarted)
+        self._source_restarted = False  # resent_frames: a restarted source has not answered a new frame yet
         self.opts = (opts or MapperServiceOptions()).validate()
         self.cfg = cfg if cfg is not None else MapperConfig()
         if not self.opts.unposed_init:  # every frame comes with its pose: trusted, as fmapping map / slam do
@@ -187,6 +191,9 @@ class MapperCore(ServiceCore):
             return self._refine_pose(p)
         self.poses[p.seq] = p
         self.counters.inc("poses_received")
+        if self._source_restarted:  # the restarted source's first answer: it will not answer earlier frames
+            self._source_restarted = False
+            return self._orphan_waiting(before=p.seq)
         while len(self.poses) > self.opts.max_poses:
             self.poses.pop(min(self.poses))
             self.counters.inc("dropped_poses")
@@ -203,7 +210,15 @@ class MapperCore(ServiceCore):
         if prev is None or st.seq >= prev:
             return []
         self.counters.inc("source_restarts")
-        waiting = [s for s in self.frames if s not in self.poses]
+        if self.opts.resent_frames:  # they come again: the new source answers them, in order
+            self._source_restarted = True
+            return []
+        return self._orphan_waiting()
+
+    def _orphan_waiting(self, before: Optional[int] = None) -> list[Output]:
+        """Skip the frames waiting for a pose (those before frame ``before``): their source restarted
+        and will never answer them."""
+        waiting = [s for s in self.frames if s not in self.poses and (before is None or s < before)]
         if waiting:
             self._orphaned = max(self._orphaned, max(waiting))
         return self._integrate()

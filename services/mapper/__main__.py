@@ -46,6 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--anchor-frames", type=int, default=2)
     p.add_argument("--no-mesh", action="store_true")
     p.add_argument("--mesh-resolution", type=int, default=96, help="marching-cubes grid per axis")
+    p.add_argument("--resent-frames", action="store_true",
+                   help="the player sends a restarted pose source the frames it never handled again (io play "
+                        "--resend-to): frames waiting for a pose wait for its answers (else skipped at once)")
     p.add_argument("--device", default=None, help="torch device (default: the config's, 'auto')")
     p.add_argument("--threads", type=int, default=0,
                    help="torch threads (0 = auto: half the CPUs this process may use, at least 1)")
@@ -76,6 +79,7 @@ def main(argv=None, session=None, keys=None) -> int:
         points_interval=args.points_interval, max_points=args.max_points, write_mesh=not args.no_mesh,
         mesh_resolution=args.mesh_resolution,
         anchor_source=args.anchor, anchor_frames=args.anchor_frames, pose_timeout=args.pose_timeout,
+        resent_frames=args.resent_frames,
     ).validate()
     # frames: thinned when full (a long update then leaves an evenly subsampled backlog, not the newest only)
     with Service("mapper", args, capacities=CAPACITIES, max_bytes=MAX_BYTES, session=session,

@@ -76,6 +76,11 @@ class TrackerServiceOptions:
     republish_min_m: float = 1e-3
     republish_min_deg: float = 0.05
     republish: bool = True
+    # mono: the current keyframe (image, pose, the landmarks it saw) is saved here after each keyframe; a
+    # restarted tracker finding it re-localises the first frames it gets against it and goes on in the
+    # same world frame and scale (:meth:`MonoFrontend.resume`) instead of a new bootstrap (None: not kept)
+    state_path: Optional[str] = None
+    resume_tries: int = 5  # frames a restarted tracker tries to re-localise before it bootstraps anew
 
     def validate(self) -> "TrackerServiceOptions":
         if self.frontend not in ("mono", "map"):
@@ -128,6 +133,10 @@ class TrackerCore(ServiceCore):
         self._ref_target: Optional[int] = None  # frame to make the next reference at
         self._motion_seq = -1  # frame of the newest pose in the tracker's motion model
         self.last_track: dict = {}
+        self.resume_state: Optional[dict] = load_resume_state(self.opts.state_path) if self.opts.state_path else None
+        self._saved_keyframe = -1  # keyframe of the state on disk
+        if self.resume_state is not None:
+            self.counters.set("resume_keyframe", int(self.resume_state["index"]))
 
     @property
     def ack(self) -> int:
@@ -160,7 +169,9 @@ class TrackerCore(ServiceCore):
                 self.camera_dict = self.camera = self.tracker = None
                 self.bad_input(f"frame {f.seq}: unusable camera {f.camera}: {e}", "rejected_frames")
                 return []
-        if f.seq <= self.last_seq or f.seq in self.waiting:
+        if f.seq <= self.last_seq and f.seq not in self.waiting:
+            return self._answer_again(f)
+        if f.seq in self.waiting:
             self.counters.inc("stale_frames")
             return []
         self.took_frame(f.seq)
@@ -320,11 +331,69 @@ class TrackerCore(ServiceCore):
             return None
         return lambda c2w: self._map_view().depth_fn(c2w)
 
+    def _answer_again(self, f: P.Frame) -> list[Output]:
+        """A frame answered before comes again (the player resends frames to a restarted mapper): the
+        same answer again, so that nobody waits for it (``quality = 0`` when it was lost or skipped)."""
+        self.counters.inc("frames_answered_again")
+        own = self.own_poses.get(f.seq)
+        if own is None:
+            return [self._skip(f.seq, f.timestamp)]
+        return [("poses", P.Pose(seq=f.seq, timestamp=own.timestamp, c2w=rigid_pose(own.c2w), source="tracker",
+                                 quality=own.quality))]
+
+    def _resume_mono(self, seq: int, f: P.Frame) -> list[Output]:
+        """A restarted tracker: re-localise frame ``seq`` against the saved keyframe (``resume_state``)
+        and go on from there in its world frame and scale; after ``resume_tries`` misses, bootstrap
+        anew (the frames missed are answered with ``quality = 0``)."""
+        t0 = time.perf_counter()
+        c2w = self.mono.resume(seq, np.asarray(f.rgb), self.resume_state)
+        self.counters.set("track_ms", round((time.perf_counter() - t0) * 1e3, 2))
+        if c2w is None:
+            self.counters.inc("resume_misses")
+            if self.counters.get("resume_misses") >= self.opts.resume_tries:
+                self.resume_state = None
+                self.last_error = f"could not re-localise against keyframe {self.counters.get('resume_keyframe')}: " \
+                                  "bootstrapping anew"
+            return [self._skip(seq, f.timestamp)]
+        self.resume_state = None
+        self.counters.set("resumed_at", seq)
+        self.counters.set("resume_points", int(self.mono.init_info.get("points", 0)))
+        self.counters.inc("frames_tracked")
+        self._save_state()
+        return self._publish_mono(seq, f.timestamp, c2w, 1.0)
+
+    def _resume_fits(self) -> bool:
+        """Is there a saved keyframe to re-localise against, of the frames' size? (A misfit is dropped.)"""
+        st = self.resume_state
+        if st is not None and st["gray"].shape != (self.camera.height, self.camera.width):
+            self.last_error = f"the saved keyframe's image is {st['gray'].shape}, not the frames' size: not resuming"
+            self.resume_state = st = None
+        return st is not None
+
+    def _save_state(self) -> None:
+        """The front end's current keyframe to ``state_path`` (atomically), when it changed."""
+        if not self.opts.state_path or self.mono is None or self.mono.keyframe_index == self._saved_keyframe:
+            return
+        state = self.mono.keyframe_state()
+        if state is None:
+            return
+        try:
+            save_resume_state(self.opts.state_path, state)
+        except OSError as e:
+            self.last_error = f"tracker state not saved: {e}"
+            return
+        self._saved_keyframe = state["index"]
+        self.counters.inc("states_saved")
+
     def _advance_mono(self) -> list[Output]:
         out: list[Output] = []
         fe = self.mono
         while self.waiting:
             seq, f = next(iter(self.waiting.items()))
+            if not fe.initialized and self._resume_fits():
+                self.waiting.popitem(last=False)
+                out += self._resume_mono(seq, f)
+                continue
             if not fe.initialized:
                 if self.anchors and seq not in self.anchors and len(self.waiting) <= self.opts.anchor_wait:
                     break  # anchors flow: this frame's is on its way
@@ -352,6 +421,7 @@ class TrackerCore(ServiceCore):
                         out += self._publish_mono(s, self._boot_stamps.get(s, 0.0), poses[s], 1.0)
                     self._boot_stamps.clear()
                     out += self._release_held()
+                    self._save_state()
                 continue
             self.waiting.popitem(last=False)
             res = fe.track(seq, np.asarray(f.rgb), extra_depth=self._extra_depth())
@@ -359,6 +429,7 @@ class TrackerCore(ServiceCore):
             out += self._answer(f, res)
             if res.need_keyframe and not res.lost and self.opts.republish:
                 out += self._republish_refined()
+            self._save_state()
             self.counters.set("loop_closures", len(fe.loops))
         self.counters.set("waiting_frames", len(self.waiting))
         return out
@@ -608,6 +679,45 @@ class TrackerCore(ServiceCore):
             return self._publish_mono(f.seq, f.timestamp, res.c2w, quality)
         self._keep_own(f.seq, res.c2w, f.timestamp, quality)
         return self._emit(f.seq, f.timestamp, res.c2w, quality)
+
+
+RESUME_KEYS = {"index": 0, "gray": 2, "c2w": 2, "world": 2, "uv": 2, "prev_index": 0, "prev_c2w": 2}  # key: ndim
+
+
+def save_resume_state(path, state: dict) -> None:
+    """``state`` (:meth:`MonoFrontend.keyframe_state`) as an .npz, written atomically (temp file, fsync, rename)."""
+    import os
+    from pathlib import Path
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as fh:
+        np.savez(fh, **{k: np.asarray(state[k]) for k in RESUME_KEYS})
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def load_resume_state(path) -> Optional[dict]:
+    """The state :func:`save_resume_state` wrote, or None when there is none or it is not one (logged)."""
+    from pathlib import Path
+
+    if not Path(path).is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            state = {k: np.array(z[k]) for k in RESUME_KEYS}
+        bad = [k for k, nd in RESUME_KEYS.items() if state[k].ndim != nd]
+        n = len(state["world"])
+        if bad or state["c2w"].shape != (4, 4) or state["world"].shape != (n, 3) or state["uv"].shape != (n, 2) \
+                or not all(np.isfinite(state[k]).all() for k in ("c2w", "world", "uv", "prev_c2w")):
+            raise ValueError(f"unexpected arrays {bad or 'shapes'}")
+    except (OSError, ValueError, KeyError, EOFError) as e:
+        log.warning("ignoring the tracker state %s: %s", path, e)
+        return None
+    state["index"], state["prev_index"] = int(state["index"]), int(state["prev_index"])
+    return state
 
 
 def min_field_elements(cfg) -> int:

@@ -26,6 +26,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "mapper's field (frames wait for the first map)")
     p.add_argument("--anchor", default="gt",
                    help="pose source fixing world frame and scale of the mono bootstrap ('' for none)")
+    p.add_argument("--state", default=None,
+                   help="mono: file where the current keyframe is kept; a tracker (re)started with one "
+                        "re-localises against it and goes on in the same world frame and scale")
     p.add_argument("--query-timeout", type=float, default=2.0, help="seconds to wait for map/latest at start")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0 = auto: 1; its tensors are small)")
     add_first_message_arg(p, "frame")
@@ -47,7 +50,7 @@ def main(argv=None, session=None, keys=None) -> int:
     limit_blas_threads(1)  # to the other services on the same cores (fmapping.runtime)
     cfg = load_tracker_config(args.config)
     opts = TrackerServiceOptions(max_buffer=args.max_buffer, use_depth=args.use_depth, frontend=args.frontend,
-                                 anchor_source=args.anchor).validate()
+                                 anchor_source=args.anchor, state_path=args.state).validate()
     with Service("tracker", args, capacities=CAPACITIES, max_bytes=MAX_BYTES, session=session, keys=keys) as svc:
         return serve(svc, cfg, opts, args)
 
