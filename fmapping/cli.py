@@ -6,7 +6,8 @@
     fmapping slam  --data DIR --out OUT [--poses photometric|kiss-icp|gt|PATH.txt] [--config cfg.yaml] [--no-export]
     fmapping eval recon --pred P.ply --gt G.ply
     fmapping eval traj  --est E.txt --gt G.txt [--align sim3|se3|none]
-    fmapping up    [--data DIR|VIDEO|BAG|camera:N] [--camera CAM] [--poses tracker|gt] [--out OUT] [--view live|save]
+    fmapping up    [--data DIR|VIDEO|BAG|camera:N] [--camera CAM] [--data-fps F] [--topic T] [--poses tracker|gt]
+                   [--out OUT] [--view auto|live|save]
     fmapping demo  [--out OUT] [--poses tracker|gt]
     fmapping config dump [map|slam|up]
     fmapping --version
@@ -37,12 +38,25 @@ def _add_data_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", required=True, help=DATA_HELP + "; camera:N (a live webcam) only with fmapping up / io play")
     p.add_argument("--camera", default=None, help=CAMERA_HELP)
     p.add_argument("--max-frames", type=int, default=None, help="use only the first N frames (default: all)")
-    p.add_argument("--fps", type=float, default=None,
-                   help="frame rate for the timestamps of an image folder (default 30) or a video (default: the "
-                        "file's own)")
+    add_source_args(p)
+
+
+def add_source_args(p: argparse.ArgumentParser, fps_flags: Sequence[str] = ("--fps", "--data-fps")) -> None:
+    """The options of how a source is read, shared by every command that opens one (``info``, ``map``,
+    ``slam``, ``up``, ``python -m services.io play``); :func:`source_options` hands them to
+    :func:`fmapping.datasets.open_dataset`. ``up`` and ``io play`` take the frame rate as ``--data-fps``
+    only: their ``--fps`` is the playback rate."""
+    p.add_argument(*fps_flags, dest="data_fps", type=float, default=None,
+                   help="frame rate for the timestamps of an image folder (default 30, or the fps of its "
+                        "camera.yaml) or a video (default: the file's own)")
     p.add_argument("--topic", default=None,
                    help="image topic of a ROS bag (default: the Image / CompressedImage topic with the most "
                         "messages, depth topics aside)")
+
+
+def source_options(args) -> dict:
+    """The keyword arguments of :func:`fmapping.datasets.open_dataset` that :func:`add_source_args` defines."""
+    return {"fps": getattr(args, "data_fps", None), "topic": getattr(args, "topic", None)}
 
 
 def _bbox(text: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
@@ -134,7 +148,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pose source of the mapper: the RGB-only tracker, the dataset's GT, or an external "
                         "producer")
     p.add_argument("--out", default="out/up", help="output folder: map.ply, mesh.ply, traj.txt, stats.json, logs/")
-    p.add_argument("--fps", type=float, default=0.0, help="playback rate (0 = as fast as consumers keep up)")
+    p.add_argument("--fps", type=float, default=0.0,
+                   help="playback rate in frames per second (0 = as fast as consumers keep up; the frames' "
+                        "timestamps of an image folder or video: --data-fps)")
+    add_source_args(p, ("--data-fps",))
     p.add_argument("--config", default=None, help="YAML with mapper / tracker / launcher sections "
                                                   "(all keys: fmapping config dump up; default: none)")
     p.add_argument("--bbox", type=_bbox, default=None, help=BBOX_HELP)
@@ -167,9 +184,9 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
-class _DefaultsHelp(argparse.ArgumentDefaultsHelpFormatter):
+class DefaultsHelp(argparse.ArgumentDefaultsHelpFormatter):
     """Appends '(default: X)' to a flag's help, except where there is nothing to say (None, an
-    on/off flag) or the text already says it in words."""
+    on/off flag) or the text already says it in words. Also the services' (``services.common.service_parser``)."""
 
     def _get_help_string(self, action):
         text = action.help or ""
@@ -180,7 +197,7 @@ class _DefaultsHelp(argparse.ArgumentDefaultsHelpFormatter):
 
 def _show_defaults(parser: argparse.ArgumentParser) -> None:
     # set on every sub-parser after they are built: flags added later by any command get it too
-    parser.formatter_class = _DefaultsHelp
+    parser.formatter_class = DefaultsHelp
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
             for sp in action.choices.values():
@@ -278,7 +295,7 @@ def cmd_synth(a) -> int:
 def cmd_info(a) -> int:
     from fmapping.datasets import open_dataset
 
-    ds = open_dataset(a.data, camera=a.camera, max_frames=a.max_frames, fps=a.fps, topic=a.topic)
+    ds = open_dataset(a.data, camera=a.camera, max_frames=a.max_frames, **source_options(a))
     _print_json(ds.describe())
     return 0
 

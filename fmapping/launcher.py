@@ -55,6 +55,7 @@ from typing import Any, Optional
 
 import yaml
 
+from fmapping.cli import source_options
 from fmapping.config import read_yaml_mapping
 
 SECTIONS = ("mapper", "tracker", "launcher")
@@ -123,11 +124,11 @@ def up_config_dict(cfg: UpConfig) -> dict:
 
 
 def run_info(data, poses: str, mapper_cfg: Optional[Path], tracker_cfg: Optional[Path],
-             opts: LauncherOptions, camera: Optional[str] = None) -> dict:
+             opts: LauncherOptions, camera: Optional[str] = None, source: Optional[dict] = None) -> dict:
     """What the launcher adds to the mapper's OUT/stats.json, as ``fmapping map`` records them: the
     dataset (intrinsics, depth scale, as ``io play`` opens it) and the config every service runs with.
     A live camera (``camera:N``) is not opened here: play opens it, and a webcam may take one reader only;
-    its intrinsics are the ``--camera`` given."""
+    its intrinsics are the ``--camera`` given. ``source``: :func:`fmapping.cli.source_options` (fps, topic)."""
     from fmapping.config import load_config
     from fmapping.datasets import open_dataset
     from fmapping.datasets.live import is_live_spec
@@ -137,7 +138,7 @@ def run_info(data, poses: str, mapper_cfg: Optional[Path], tracker_cfg: Optional
     if is_live_spec(data):
         dataset = {"root": data, "kind": "camera", "live": True, "frames": None, "camera_source": camera}
     else:
-        dataset = open_dataset(data, camera=camera).describe()
+        dataset = open_dataset(data, camera=camera, **(source or {})).describe()
     return {"dataset": dataset, "poses": poses, "config": up_config_dict(resolved)}
 
 
@@ -450,7 +451,8 @@ def run_up(args) -> int:
     mono = poses == "tracker" and opts.tracker_frontend == "mono"
     live = isinstance(data, str)  # up_data: a live camera is its camera:N string, a dataset a Path
     mapper_cfg = with_user_box(mapper_cfg, getattr(args, "bbox", None), out)
-    info = run_info(data, poses, mapper_cfg, tracker_cfg, opts, camera)  # errors in data or configs: before any process
+    # errors in data or configs: before any process
+    info = run_info(data, poses, mapper_cfg, tracker_cfg, opts, camera, source_options(args))
     started = time.time()
     tracker_state(out).unlink(missing_ok=True)  # an earlier run's keyframe: not this run's world
     if not insecure:
@@ -526,9 +528,9 @@ def run_up(args) -> int:
                      f"--connect {mesh[0]} --ns {ns}"),
                   flush=True)
         window = max(opts.window, MONO_BOOTSTRAP_WINDOW) if mono else opts.window
-        play_argv = py + ["services.io", "play", "--data", str(data), "--fps", str(args.fps or 0),
-                          "--window", str(window), "--ack-from", "mapper", "--wait-for", ",".join(wait_for),
-                          "--start-timeout", str(play_start_timeout)] + (["--camera", camera] if camera else []) \
+        play_argv = py + ["services.io", "play"] + play_source_argv(data, args) + [
+            "--fps", str(getattr(args, "fps", None) or 0), "--window", str(window), "--ack-from", "mapper",
+            "--wait-for", ",".join(wait_for), "--start-timeout", str(play_start_timeout)] \
             + resend_argv(poses, live) + net("play")
         procs["play"] = Proc("play", play_argv, out, env)
         if view == "live":
@@ -573,6 +575,17 @@ def resend_argv(poses: str, live: bool) -> list[str]:
     if live:
         return []
     return ["--resend-to", "mapper,tracker" if poses == "tracker" else "mapper"]
+
+
+def play_source_argv(data, args) -> list[str]:
+    """``io play``'s options of the source ``fmapping up`` plays: the data, ``--camera`` and the
+    source options (:func:`fmapping.cli.add_source_args`) as given to ``up``."""
+    argv, src = ["--data", str(data)], source_options(args)
+    for flag, value in (("--camera", getattr(args, "camera", None)), ("--data-fps", src["fps"]),
+                        ("--topic", src["topic"])):
+        if value is not None:
+            argv += [flag, str(value)]
+    return argv
 
 
 def play_wait_for(poses: str, view: bool = True) -> list[str]:

@@ -123,12 +123,14 @@ def _heldout_psnr(mapper: Mapper, ds, used: list, n: int = 8) -> Optional[float]
 
 # ----------------------------------------------------------------------------- job I/O (shared with fmapping.slam)
 def open_job_dataset(args):
-    """The dataset of a job: ``args.data`` with the optional ``args.camera`` / ``args.max_frames``.
+    """The dataset of a job: ``args.data`` with the optional ``args.camera`` / ``args.max_frames`` and the
+    source options of :func:`fmapping.cli.add_source_args`.
     A dataset without frames is a ValueError naming the folder."""
+    from fmapping.cli import source_options
     from fmapping.datasets import open_dataset
 
     ds = open_dataset(args.data, camera=getattr(args, "camera", None), max_frames=getattr(args, "max_frames", None),
-                      fps=getattr(args, "fps", None), topic=getattr(args, "topic", None))
+                      **source_options(args))
     if len(ds) == 0:
         raise ValueError(f"dataset {args.data} has no frames")
     return ds

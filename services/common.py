@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterable, Optional, Sequence
 
 import numpy as np
+from fmapping.cli import DefaultsHelp
 from fmapping.config import read_yaml_mapping
 
 from fmapping import protocol as P
@@ -66,10 +67,13 @@ def names(text: Optional[str]) -> list[str]:
     return _split([text] if text else [])
 
 
+class _ServiceHelp(argparse.RawDescriptionHelpFormatter, DefaultsHelp):
+    """The module docstring as written, each flag's default after its help."""
+
+
 def service_parser(prog: str, doc: Optional[str]) -> argparse.ArgumentParser:
     """The argument parser of ``python -m <prog>``, its module docstring as description."""
-    return argparse.ArgumentParser(prog=f"python -m {prog}", description=doc,
-                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+    return argparse.ArgumentParser(prog=f"python -m {prog}", description=doc, formatter_class=_ServiceHelp)
 
 
 def available_cpus() -> int:
@@ -94,6 +98,11 @@ def set_torch_threads(n: int, auto: int) -> int:
     return k
 
 
+LOG_LEVEL_HELP = "logging level: DEBUG, INFO, WARNING or ERROR (default: $FMAPPING_LOG, else INFO)"
+FINAL_TIMEOUT_HELP = ("seconds to wait, after the end-of-sequence stop, for the --wait-done services to report "
+                      "'done' (they write their final outputs then)")
+
+
 def add_common_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """zenoh and service options every service accepts."""
     g = p.add_argument_group("zenoh")
@@ -114,7 +123,7 @@ def add_common_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     g.add_argument("--status-file", default=None, help="also write the status as JSON to this file (atomically)")
     g.add_argument("--status-interval", type=float, default=0.5, help="heartbeat period in seconds")
     g.add_argument("--exit-with-parent", action="store_true", help="stop when the parent process goes away")
-    g.add_argument("--log-level", default=os.environ.get("FMAPPING_LOG", "INFO"))
+    g.add_argument("--log-level", default=os.environ.get("FMAPPING_LOG", "INFO"), help=LOG_LEVEL_HELP)
     return p
 
 

@@ -13,7 +13,7 @@ import logging
 import os
 import time
 
-from services.common import Shutdown, run_main, service_parser, setup_logging, write_json_atomic
+from services.common import LOG_LEVEL_HELP, Shutdown, run_main, service_parser, setup_logging, write_json_atomic
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -21,7 +21,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--zenoh-config", required=True, metavar="FILE", help="zenoh JSON5 config (mode router)")
     p.add_argument("--status-file", default=None, help="written once the router listens")
     p.add_argument("--exit-with-parent", action="store_true", help="stop when the parent process goes away")
-    p.add_argument("--log-level", default=os.environ.get("FMAPPING_LOG", "INFO"))
+    p.add_argument("--log-level", default=os.environ.get("FMAPPING_LOG", "INFO"), help=LOG_LEVEL_HELP)
     return p
 
 

@@ -132,6 +132,36 @@ def test_every_flag_has_help_with_its_default():
     assert "number of frames (default: 200)" in text and "(default: 320x240)" in text
 
 
+def test_every_service_flag_has_help_with_its_default():
+    import argparse
+
+    from services import router
+    from services.common import service_parser
+    from services.io import play, record, view
+    from services.mapper.__main__ import build_parser as mapper_parser
+    from services.ros2.__main__ import build_parser as ros2_parser
+    from services.tracker.__main__ import build_parser as tracker_parser
+
+    parsers = {"io play": play.add_args(service_parser("services.io play", None)),
+               "io view": view.add_args(service_parser("services.io view", None)),
+               "io record": record.add_args(service_parser("services.io record", None)),
+               "mapper": mapper_parser(), "tracker": tracker_parser(), "ros2": ros2_parser(),
+               "router": router.build_parser()}
+    seen = 0
+    for name, p in parsers.items():
+        for action in p._actions:
+            if not action.option_strings or action.default is argparse.SUPPRESS:
+                continue
+            seen += 1
+            flag = f"{name} {action.option_strings[-1]}"
+            assert action.help and action.help.strip(), f"{flag} has no help text"
+            if action.default is not None and not isinstance(action.default, bool):
+                assert "default" in p._get_formatter()._get_help_string(action), flag
+    assert seen > 120
+    text = " ".join(parsers["io play"].format_help().split())
+    assert "frames in flight beyond the slowest acknowledgement (default: 4)" in text
+
+
 # ------------------------------------------------------------------ bad --out
 @pytest.mark.parametrize("command", ["map", "slam"])
 def test_bad_out_is_one_line_and_rc_2(command, tmp_path, capsys):
@@ -238,12 +268,16 @@ def test_data_help_lists_the_sources_and_fps_topic_reach_the_dataset(tmp_path, c
         for source in ("image folder", "video", "EuRoC", "ScanNet", "rosbag2", "MCAP", "camera:N"):
             assert source in text, (cmd, source)
     for cmd in ("info", "map", "slam"):  # fps = timestamps of an image folder / video; topic = a bag's images
-        a = parser.parse_args([cmd, "--data", "x", "--fps", "12.5", "--topic", "/cam/image_raw"]
-                              + (["--out", "o"] if cmd != "info" else []))
-        assert a.fps == 12.5 and a.topic == "/cam/image_raw"
+        for flag in ("--fps", "--data-fps"):
+            a = parser.parse_args([cmd, "--data", "x", flag, "12.5", "--topic", "/cam/image_raw"]
+                                  + (["--out", "o"] if cmd != "info" else []))
+            assert a.data_fps == 12.5 and a.topic == "/cam/image_raw"
+    # up: --fps is the playback rate, the timestamps' rate is --data-fps
+    a = parser.parse_args(["up", "--fps", "5", "--data-fps", "12.5", "--topic", "/cam/image_raw"])
+    assert (a.fps, a.data_fps, a.topic) == (5.0, 12.5, "/cam/image_raw")
 
     images = _image_folder(tmp_path / "imgs")
-    ds = open_job_dataset(argparse.Namespace(data=str(images), camera="30,30,16,12", max_frames=None, fps=10.0,
+    ds = open_job_dataset(argparse.Namespace(data=str(images), camera="30,30,16,12", max_frames=None, data_fps=10.0,
                                              topic=None))
     assert [round(t, 6) for t in ds.timestamps] == [0.0, 0.1, 0.2]
     capsys.readouterr()

@@ -413,3 +413,116 @@ def test_play_streams_a_live_camera_to_its_end(tmp_path):
     stop = [P.decode(d, P.Control) for k, d in session.puts if k == keys.control][-1]
     assert stop.command == "stop" and stop.args == {"reason": "end", "last_seq": 3}
     live.close()
+
+
+# ------------------------------------------------------------------ the source options through fmapping up to io play
+def _up_play_argv(monkeypatch, argv):
+    """The command line `fmapping up ARGV` gives io play (after `services.io play`), no process started;
+    None when up refused the input."""
+    from fmapping import launcher
+    from fmapping.cli import main
+
+    started = {}
+
+    class FakeProc:
+        def __init__(self, name, argv, out, env):
+            started[name] = argv
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(launcher, "Proc", FakeProc)
+    monkeypatch.setattr(launcher, "_wait_ready", lambda procs, timeout: None)
+    monkeypatch.setattr(launcher, "_monitor", lambda procs, *a, **k: 0)
+    monkeypatch.setattr(launcher, "_stop_all", lambda *a, **k: None)
+    rc = main(["up", "--poses", "gt", "--view", "save", "--insecure"] + argv)
+    if rc != 0:
+        assert "play" not in started  # bad input: refused before any process
+        return None
+    play = started["play"]
+    return play[play.index("play") + 1:]
+
+
+def _play_opens(argv):
+    """The source `python -m services.io play ARGV` plays (its own parser, its own opening)."""
+    from services.common import service_parser
+    from services.io import play
+
+    return play.open_source(play.add_args(service_parser("services.io play", None)).parse_args(argv))
+
+
+def test_up_and_play_read_an_image_folder_at_data_fps(tmp_path, monkeypatch):
+    want = _image_folder(tmp_path / "imgs")
+    argv = _up_play_argv(monkeypatch, ["--data", str(tmp_path / "imgs"), "--camera", "20,21,15.5,11.5",
+                                       "--fps", "2", "--data-fps", "12.5", "--out", str(tmp_path / "up")])
+    assert float(argv[argv.index("--fps") + 1]) == 2.0  # the playback rate stays play's own
+    ds = _play_opens(argv)
+    assert ds.kind == "images" and len(ds) == 4 and ds.camera.fx == 20
+    np.testing.assert_allclose(np.diff(ds.timestamps), 1 / 12.5)
+    np.testing.assert_array_equal(ds[3].rgb, want[3])
+    # without --data-fps: none passed on, the folder's default rate
+    argv = _up_play_argv(monkeypatch, ["--data", str(tmp_path / "imgs"), "--camera", "20,21,15.5,11.5",
+                                       "--out", str(tmp_path / "up")])
+    assert "--data-fps" not in argv and "--topic" not in argv
+    np.testing.assert_allclose(np.diff(_play_opens(argv).timestamps), 1 / 30)
+
+
+def test_up_and_play_read_a_video_at_data_fps(tmp_path, monkeypatch):
+    colours = _video(tmp_path / "clip.mp4")
+    (tmp_path / "calib.txt").write_text("50 50 31.5 23.5\n")
+    argv = _up_play_argv(monkeypatch, ["--data", str(tmp_path / "clip.mp4"), "--data-fps", "24",
+                                       "--out", str(tmp_path / "up")])
+    ds = _play_opens(argv)
+    assert ds.kind == "video" and len(ds) == VN
+    np.testing.assert_allclose(ds.timestamps, np.arange(VN) / 24)
+    np.testing.assert_allclose(ds[VN - 1].rgb.reshape(-1, 3).mean(0), colours[VN - 1], atol=8)
+    ds.close()
+    argv = _up_play_argv(monkeypatch, ["--data", str(tmp_path / "clip.mp4"), "--out", str(tmp_path / "up")])
+    ds = _play_opens(argv)
+    np.testing.assert_allclose(ds.timestamps, np.arange(VN) / VFPS)  # the file's own rate
+    ds.close()
+
+
+def test_up_and_play_take_a_bags_topic(tmp_path, monkeypatch, capsys):
+    pytest.importorskip("rosbags")
+    bag = tmp_path / "bag"
+    imgs, stamps = _bag(bag, camera_info=False, compressed=True)
+    cam = "30,30,15.5,11.5"
+    argv = _up_play_argv(monkeypatch, ["--data", str(bag), "--camera", cam, "--topic", "/cam/image_raw",
+                                       "--out", str(tmp_path / "up")])
+    assert argv[argv.index("--topic") + 1] == "/cam/image_raw"
+    ds = _play_opens(argv)
+    assert ds.meta["topic"] == "/cam/image_raw" and len(ds) == 3
+    np.testing.assert_allclose(ds.timestamps, np.asarray(stamps) / 1e9, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(ds[2].rgb, imgs[2])
+    ds.close()
+    # a topic without images: one line from up before anything starts, and from play itself
+    capsys.readouterr()
+    assert _up_play_argv(monkeypatch, ["--data", str(bag), "--camera", cam, "--topic", "/imu",
+                                       "--out", str(tmp_path / "up")]) is None
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("fmapping up: error:") and "/imu" in err and len(err.splitlines()) == 1
+    from services.io.__main__ import main as io_main
+
+    assert io_main(["play", "--data", str(bag), "--camera", cam, "--topic", "/imu"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("services.io play: error:") and "/imu" in err and len(err.splitlines()) == 1
+
+
+def test_a_camera_that_does_not_open_is_one_line(capfd):
+    from services.io.__main__ import main as io_main
+
+    assert io_main(["play", "--data", "camera:63", "--camera", "20,20,15.5,11.5"]) == 2  # no device 63
+    err = capfd.readouterr().err.strip()
+    assert err == "services.io play: error: cannot open camera:63 with OpenCV (missing file or device, or a codec " \
+                  "this build lacks)"
+
+
+def test_source_options_that_do_not_apply_are_refused(tmp_path, capsys):
+    from services.io.__main__ import main as io_main
+
+    _image_folder(tmp_path / "imgs")
+    assert io_main(["play", "--data", str(tmp_path / "imgs"), "--camera", "20,20,15.5,11.5", "--topic", "/x"]) == 2
+    assert "topic= applies to rosbag sources, not to images" in capsys.readouterr().err
+    with pytest.raises(DatasetError, match="fps= applies to images / video sources, not to a live camera"):
+        open_dataset("camera:0", camera="20,20,15.5,11.5", fps=10, live=True)

@@ -121,6 +121,15 @@ def _is_synthetic(root: Path) -> bool:
     return isinstance(scene, dict) and scene.get("generator") == SYNTHETIC_GENERATOR
 
 
+def _source_options(kind: str, path, **given) -> dict:
+    """The options given (not None), refused with a message when they do not apply to ``kind``."""
+    opts = {name: value for name, value in given.items() if value is not None}
+    for name in opts:
+        if kind not in _OPTIONS[name]:
+            raise DatasetError(f"{name}= applies to {' / '.join(_OPTIONS[name])} sources, not to {kind} ({path})")
+    return opts
+
+
 def open_dataset(
     path: Union[str, Path],
     camera: Union[str, PinholeCamera, None] = None,
@@ -157,6 +166,7 @@ def open_dataset(
     if is_live_spec(path):
         if not live:
             raise refuse_live(str(path))
+        _source_options("a live camera", path, fps=fps, topic=topic)
         return open_live(str(path), camera=camera, max_frames=max_frames)
     path = Path(path)
     if not path.exists():
@@ -169,11 +179,6 @@ def open_dataset(
         k = detect_kind(path)
     if k not in _LOADERS:
         raise DatasetError(f"unknown dataset kind {kind!r}; expected 'auto' or one of {', '.join(KINDS)}")
-    opts = {}
-    for name, value in (("fps", fps), ("topic", topic)):
-        if value is not None:
-            if k not in _OPTIONS[name]:
-                raise DatasetError(f"{name}= applies to {' / '.join(_OPTIONS[name])} sources, not to {k} ({path})")
-            opts[name] = value
+    opts = _source_options(k, path, fps=fps, topic=topic)
     root = path.parent if path.is_file() and k not in _FILE_KINDS else path
     return _LOADERS[k](root, camera=camera, max_frames=max_frames, background=bg, **opts)

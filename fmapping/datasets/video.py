@@ -36,7 +36,13 @@ def open_capture(source, where: str):
     """A ``cv2.VideoCapture`` on a file or device index, opened or a :class:`DatasetError`."""
     import cv2
 
-    cap = cv2.VideoCapture(source)
+    log = cv2.utils.logging
+    level = log.getLogLevel()
+    log.setLogLevel(log.LOG_LEVEL_ERROR)  # a failed open is the one line below, not OpenCV's warnings too
+    try:
+        cap = cv2.VideoCapture(source)
+    finally:
+        log.setLogLevel(level)
     if not cap.isOpened():
         cap.release()
         raise DatasetError(f"cannot open {where} with OpenCV (missing file or device, or a codec this build lacks)")

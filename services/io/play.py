@@ -18,9 +18,12 @@ for the last acknowledgement, then publishes ``Control(stop, {reason: end, last_
 Control: pause / resume / stop / reset (restart from the first frame; frame numbers
 keep increasing) / start (begin when launched with ``--paused``).
 
-``--data camera:N`` streams a live webcam (:class:`fmapping.datasets.live.LiveCamera`, intrinsics
-from ``--camera``): frames are read as they are sent, until the device stops or ``--max-frames``;
-it has no length, so no ``frames_total``, no ``--loop``, and ``reset`` just goes on.
+``--data`` is any source fmapping reads, with the options of ``fmapping info`` / ``map`` / ``slam``
+(``--camera``, ``--max-frames``, ``--topic``; their ``--fps``, the timestamps of an image folder or a
+video, is ``--data-fps`` here). ``--data camera:N`` streams a live webcam
+(:class:`fmapping.datasets.live.LiveCamera`, intrinsics from ``--camera``): frames are read as they
+are sent, until the device stops or ``--max-frames``; it has no length, so no ``frames_total``, no
+``--loop``, and ``reset`` just goes on.
 """
 from __future__ import annotations
 
@@ -32,6 +35,7 @@ from typing import Optional
 import numpy as np
 
 from fmapping import protocol as P
+from fmapping.cli import add_source_args, source_options
 from services.common import EXIT_STALLED, Peers, Service, add_common_args, names, service_parser
 
 
@@ -40,12 +44,16 @@ def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    "fmapping reads), or camera:N for a live webcam (needs --camera)")
     p.add_argument("--camera", default=None, help="override intrinsics fx,fy,cx,cy[,k1,k2,p1,p2[,k3]] "
                    "or a calib.txt / camera.yaml path")
-    p.add_argument("--max-frames", type=int, default=None)
-    p.add_argument("--fps", type=float, default=0.0, help="frames per second (0 = as fast as consumers keep up)")
+    p.add_argument("--max-frames", type=int, default=None, help="play only the first N frames (default: all)")
+    p.add_argument("--fps", type=float, default=0.0,
+                   help="playback rate in frames per second (0 = as fast as consumers keep up; the frames' "
+                        "timestamps of an image folder or video: --data-fps)")
+    add_source_args(p, ("--data-fps",))
     p.add_argument("--window", type=int, default=4, help="frames in flight beyond the slowest acknowledgement")
     p.add_argument("--ack-from", default="mapper", help="comma-separated services whose acknowledgements pace playback")
     p.add_argument("--wait-for", default=None, help="services that must be up before the first frame (default: --ack-from)")
-    p.add_argument("--start-timeout", type=float, default=60.0)
+    p.add_argument("--start-timeout", type=float, default=60.0,
+                   help="seconds to wait for the services of --wait-for; then playback starts anyway")
     p.add_argument("--ack-timeout", type=float, default=15.0, help="seconds without a status after which a consumer no longer paces playback")
     p.add_argument("--stall-timeout", type=float, default=600.0,
                    help="seconds a live consumer's acknowledgement may stay put while frames wait for it; then "
@@ -322,16 +330,22 @@ class Player:
         return 0
 
 
+def open_source(args):
+    """The source of ``--data`` as play reads it (``--camera``, ``--max-frames``, ``--data-fps``,
+    ``--topic``); live=True: ``camera:N`` streams a webcam (a LiveCamera, read in order, no length)."""
+    from fmapping.datasets import open_dataset
+
+    return open_dataset(args.data, camera=args.camera, max_frames=args.max_frames, live=True,
+                        **source_options(args))
+
+
 def main(argv=None, session=None, keys=None, dataset=None) -> int:
     from services.common import setup_logging
 
     args = add_args(service_parser("services.io play", __doc__)).parse_args(argv)
     setup_logging(args.log_level, "play")
     if dataset is None:
-        from fmapping.datasets import open_dataset
-
-        # live=True: ``--data camera:N`` streams a webcam (a LiveCamera, read in order, no length)
-        dataset = open_dataset(args.data, camera=args.camera, max_frames=args.max_frames, live=True)
+        dataset = open_source(args)
     if getattr(dataset, "live", False) and args.loop:
         raise SystemExit(f"--loop: {args.data} is a live camera, it cannot start over")
     with Service("play", args, session=session, keys=keys) as svc:

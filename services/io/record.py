@@ -25,16 +25,16 @@ import numpy as np
 from fmapping import protocol as P
 from fmapping.ply import write_ply
 from fmapping.trajectory import write_tum_trajectory  # imports torch: at start-up, not at the end
-from services.common import (MIB, FirstMessage, Peers, Service, add_common_args, add_first_message_arg, names,
-                             seq_problem, serve_until_end, service_parser, setup_logging, snapshot_problem, stop_kind,
-                             write_json_atomic)
+from services.common import (FINAL_TIMEOUT_HELP, MIB, FirstMessage, Peers, Service, add_common_args,
+                             add_first_message_arg, names, seq_problem, serve_until_end, service_parser, setup_logging,
+                             snapshot_problem, stop_kind, write_json_atomic)
 
 
 def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--source", default="tracker", help="pose source written as traj.txt (tracker | gt | external | ...)")
     p.add_argument("--wait-done", default="mapper", help="services whose 'done' status ends the recording at the end of a sequence")
-    p.add_argument("--final-timeout", type=float, default=120.0)
+    p.add_argument("--final-timeout", type=float, default=120.0, help=FINAL_TIMEOUT_HELP)
     p.add_argument("--max-poses", type=int, default=1_000_000, help="per source")
     add_first_message_arg(p, "pose")
     return add_common_args(p)

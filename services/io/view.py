@@ -39,8 +39,8 @@ from typing import Callable, Optional
 import numpy as np
 
 from fmapping import protocol as P
-from services.common import (Peers, Service, add_common_args, names, serve_until_end, service_parser, setup_logging,
-                             stop_kind)
+from services.common import (FINAL_TIMEOUT_HELP, Peers, Service, add_common_args, names, serve_until_end,
+                             service_parser, setup_logging, stop_kind)
 
 SOURCE_COLORS = {"tracker": (230, 80, 40), "gt": (40, 200, 80), "external": (60, 120, 240)}
 KEYFRAME_COLOR = (250, 200, 40)
@@ -74,8 +74,9 @@ def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="at the end also log DIR/map.ply and DIR/mesh.ply when the mapper wrote them (default: none)")
     p.add_argument("--jpeg-quality", type=int, default=85, help="compress logged RGB (0 = raw)")
     p.add_argument("--exit-at-end", action="store_true", help="when serving: exit at the end instead of serving on")
-    p.add_argument("--wait-done", default="mapper")
-    p.add_argument("--final-timeout", type=float, default=120.0)
+    p.add_argument("--wait-done", default="mapper",
+                   help="services whose 'done' status ends the logging at the end of a sequence")
+    p.add_argument("--final-timeout", type=float, default=120.0, help=FINAL_TIMEOUT_HELP)
     return add_common_args(p)
 
 

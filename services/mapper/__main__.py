@@ -27,7 +27,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = service_parser("services.mapper", __doc__)
     p.add_argument("--poses", default="gt", choices=POSE_SOURCES, help="pose source: key poses/<source>")
     p.add_argument("--config", default=None, help="YAML overrides of the mapper config (fmapping.mapper.MapperConfig)")
-    p.add_argument("--field", default=None, choices=["cp", "vm", "mlp", "grid"])
+    p.add_argument("--field", default=None, choices=["cp", "vm", "mlp", "grid"],
+                   help="field type (default: the config's field.kind, cp)")
     p.add_argument("--out", default=None, help="output folder for map.ply, mesh.ply, traj.txt, stats.json, checkpoint.pt")
     p.add_argument("--checkpoint", default=None, help="checkpoint file (default OUT/checkpoint.pt)")
     p.add_argument("--checkpoint-every", type=int, default=1, help="windows between checkpoints (0 = never)")
@@ -43,8 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--anchor", default=None,
                    help="pose source fixing the first --anchor-frames frames (scale) of an unposed init "
                         "(default: gt with --unposed-init yes, none otherwise; '' for none)")
-    p.add_argument("--anchor-frames", type=int, default=2)
-    p.add_argument("--no-mesh", action="store_true")
+    p.add_argument("--anchor-frames", type=int, default=2, help="frames of an unposed init that --anchor fixes")
+    p.add_argument("--no-mesh", action="store_true", help="skip mesh.ply at the end (map.ply is still written)")
     p.add_argument("--mesh-resolution", type=int, default=96, help="marching-cubes grid per axis")
     p.add_argument("--resent-frames", action="store_true",
                    help="the player sends a restarted pose source the frames it never handled again (io play "
