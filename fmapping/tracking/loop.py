@@ -11,6 +11,12 @@ verify it on the old keyframe's landmarks, and say where the current keyframe is
    the old keyframe's image, rotated into the current view first; PnP + RANSAC on their world
    positions gives the current keyframe's pose in the old map. Accepted with at least
    ``min_inliers`` inliers making up ``min_inlier_ratio`` of the tracked points.
+3. **Cross-check** (:func:`cross_check`): the same the other way round, the current keyframe's
+   own landmarks located in the old keyframe's image, gives the relative pose a second time from
+   structure the first measurement did not use; the loop is accepted only when the two agree within
+   ``max_cross_deg`` and ``max_cross_dist`` (times the median depth). Repeated texture and a few wrong
+   landmarks can give a PnP pose with enough inliers that is degrees off (a real kitchen: loops whose
+   relative pose the GT puts 30-40 cm and 7-9 deg away).
 
 The correction itself (a pose graph over the keyframes of the loop,
 :mod:`fmapping.tracking.posegraph`, then a bundle adjustment with the loop's matches) is
@@ -54,6 +60,11 @@ class LoopConfig:
     loop_ba_keep_scale: bool = True  # scale the BA's result about the first keyframe back to the pose graph's size
     max_correction: float = 0.5  # a correction moving the keyframe more (times the median depth) is refused
     max_keyframe_images: int = 400  # keyframe images kept for verification (the oldest go first)
+    # Loops whose relative pose from the old keyframe's landmarks and from the current keyframe's own
+    # landmarks (located in the old image) differ by more than this rotation or translation (times the
+    # median depth) are refused (cross_check); inf: no cross-check.
+    max_cross_deg: float = 2.0
+    max_cross_dist: float = 0.05
 
     def validate(self) -> None:
         if self.min_frames_apart < 1 or self.max_distance <= 0 or not 0 < self.max_angle_deg <= 180:
@@ -130,3 +141,26 @@ def locate_in_keyframe(camera: PinholeCamera, old_gray: np.ndarray, old_uv: np.n
     if n < cfg.min_inliers or n < cfg.min_inlier_ratio * len(x):
         return None
     return LoopMatch(inv_pose(w2c), len(x), n, idx[inl], uv1[inl])
+
+
+def rotation_deg(r: np.ndarray) -> float:
+    """Angle (degrees) of a 3x3 rotation."""
+    return math.degrees(math.acos(float(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def cross_check(camera: PinholeCamera, old_gray: np.ndarray, old_c2w: np.ndarray, match: LoopMatch,
+                gray: np.ndarray, uv: np.ndarray, world: np.ndarray, c2w: np.ndarray, klt: KltConfig,
+                cfg: LoopConfig) -> Optional[tuple[float, float]]:
+    """How far the loop ``match`` (the current keyframe at ``match.c2w`` in the map of the old keyframe,
+    image ``old_gray``, pose ``old_c2w``) is from the same loop measured the other way round: the
+    current keyframe (image ``gray``, pose ``c2w`` in its own, drifted map, in which it saw the world
+    points ``world`` (N, 3) at pixels ``uv``) located in the old image with :func:`locate_in_keyframe`.
+    Returns (degrees between the two relative rotations, distance between the two relative
+    translations in the old map's units), or None when the other way finds no pose (the loop is not
+    confirmed). The translations differ by the two maps' scale drift times the loop's length as well."""
+    rel = inv_pose(old_c2w) @ match.c2w  # current keyframe in the old one's camera frame
+    back = locate_in_keyframe(camera, gray, uv, world, c2w, old_gray, c2w @ inv_pose(rel), klt, cfg)
+    if back is None:
+        return None
+    rel_back = inv_pose(back.c2w) @ c2w
+    return rotation_deg(rel[:3, :3].T @ rel_back[:3, :3]), float(np.linalg.norm(rel[:3, 3] - rel_back[:3, 3]))

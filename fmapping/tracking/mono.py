@@ -60,7 +60,7 @@ from fmapping.tracking.features import (
     two_view_init, two_view_known_baseline,
 )
 from fmapping.tracking.frontend import DirectTracker, TrackerConfig, TrackResult
-from fmapping.tracking.loop import LoopConfig, LoopMatch, locate_in_keyframe, loop_candidates
+from fmapping.tracking.loop import LoopConfig, LoopMatch, cross_check, locate_in_keyframe, loop_candidates
 from fmapping.tracking.posegraph import optimize_pose_graph
 from fmapping.tracking.rolling_shutter import rotation_step, unroll
 
@@ -684,9 +684,29 @@ class MonoFrontend:
                 continue
             if dt < lc.min_correction_m * scale and dr < lc.min_correction_deg:
                 return  # the chain already agrees with the old keyframe
+            if np.isfinite(lc.max_cross_deg):
+                cross = self._cross_check(k, index, m, gray)
+                if cross is not None:
+                    rec["cross_deg"], rec["cross_dist"] = cross[0], cross[1] / scale
+                if cross is None or cross[0] > lc.max_cross_deg or cross[1] > lc.max_cross_dist * scale:
+                    rec["why"] = (f"measured the other way round: {cross and round(cross[0], 3)} deg, "
+                                  f"{cross and round(cross[1] / scale, 4)} x median depth apart")
+                    self.loops_refused.append(rec)
+                    continue
             rec.update(self._correct_loop(k, index, m, lids, scale))
             self.loops.append(rec)
             return
+
+    def _cross_check(self, old: int, index: int, m: LoopMatch, gray: np.ndarray) -> Optional[tuple]:
+        """The loop ``m`` (keyframe ``index`` in the map of keyframe ``old``) measured the other way
+        round, from keyframe ``index``'s own landmarks (:func:`~fmapping.tracking.loop.cross_check`)."""
+        seen = [(o[1], o[2], o[3]) for o in self._obs if o[0] == index]
+        if len(seen) < self.cfg.loop.min_points:
+            return None
+        lids = np.array([o[0] for o in seen], np.int64)
+        uv = np.array([o[1:] for o in seen], np.float64)
+        return cross_check(self.camera, self._kf_images[old], self._kf_pose[old], m, gray, uv,
+                           np.stack([self._lm[i] for i in lids]), self._kf_pose[index], self.cfg.klt, self.cfg.loop)
 
     def _correct_loop(self, old: int, index: int, m: LoopMatch, old_lids: np.ndarray, scale: float) -> dict:
         """Pose graph over the keyframes from ``old`` (fixed) to ``index``: the chain's relative poses

@@ -1,0 +1,120 @@
+"""The monocular front end alone (what ``fmapping slam`` tracks with, without the mapper), for quick
+before / after comparisons of tracking changes on several datasets.
+
+    python bench/mono_only.py DATA [DATA ...] [--config slam.yaml] [--max-frames N] [--json out.json]
+
+Per dataset: the same calls as :meth:`fmapping.slam.SlamRun.run_mono` (world frame and scale anchor
+from the GT of frame 0 / the bootstrap / frame 14; the mapper does not influence the mono front end
+unless ``mono.dense_extra``), then Sim3 / SE3 ATE of every frame, the Sim3 scale, the local scale of
+consecutive segments (Sim3 of each segment alone: the scale drift), lost frames, keyframes, loops
+accepted and whether the GT contradicts each (bench/real.py's check, on the loop's own measurement).
+GT is used for the anchor (as ``fmapping slam``) and the evaluation only.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def segment_scales(est: np.ndarray, gt: np.ndarray, length: int = 40) -> list:
+    """Sim3 scale of each run of ``length`` frames aligned alone (None where the GT barely moves)."""
+    from fmapping.metrics import align_trajectory
+
+    out = []
+    for a in range(0, len(est) - length // 2, length):
+        e, g = est[a:a + length], gt[a:a + length]
+        if len(e) < 5 or np.ptp(g[:, :3, 3], axis=0).max() < 0.05:
+            out.append(None)
+            continue
+        out.append(round(float(align_trajectory(e, g, "sim3")[1][0]), 3))
+    return out
+
+
+def run(data: str, cfg, max_frames=None) -> dict:
+    from fmapping.datasets import open_dataset
+    from fmapping.metrics import ate
+    from fmapping.tracking.mono import MonoFrontend
+    from real import check_loops, loop_capture
+
+    ds = open_dataset(data, max_frames=max_frames)
+    gt = list(ds.gt_poses)
+    fe = MonoFrontend(ds.camera, cfg.tracker, cfg.mono)
+
+    def base(k):
+        return None if gt[k] is None else float(np.linalg.norm(gt[k][:3, 3] - gt[0][:3, 3]))
+
+    t0 = time.perf_counter()
+    est, lost = {}, []
+    with loop_capture() as captured:
+        i = 0
+        while i < len(ds) and not fe.initialized and not fe.failed:
+            out = fe.bootstrap(i, ds[i].rgb, gt[0], base)
+            i += 1
+        if not fe.initialized:
+            return {"data": data, "error": f"bootstrap failed after {i} frames"}
+        est.update(out)
+        for j in range(i, len(ds)):
+            r = fe.track(j, ds[j].rgb)
+            est[j] = r.c2w
+            if r.lost:
+                lost.append(j)
+        fe.settle_scale()
+        est.update(fe.poses())
+    secs = time.perf_counter() - t0
+    last, poses = gt[0], []
+    for k in range(len(ds)):
+        last = est.get(k, last)
+        poses.append(last)
+    e, g = np.stack(poses), np.stack(gt)
+    s3, se = ate(e, g, "sim3"), ate(e, g, "se3")
+    chk = check_loops(fe.loops, captured, e, gt, s3["scale"])
+    return {"data": Path(data).name, "frames": len(ds), "seconds": round(secs, 1),
+            "ate_sim3_cm": round(100 * s3["rmse_m"], 2), "sim3_scale": round(s3["scale"], 4),
+            "ate_se3_cm": round(100 * se["rmse_m"], 2), "rot_fit_deg": round(s3["rot_fit_mean_deg"], 2),
+            "segment_scales": segment_scales(e, g), "lost": len(lost), "reinits": list(fe.reinits),
+            "bootstrap": {k: fe.init_info.get(k) for k in ("frame", "points", "scale_from")},
+            "late_anchor": fe.late_anchor, "keyframes": len(fe.keyframe_poses()),
+            "loops": len(fe.loops), "loops_refused": len(fe.loops_refused),
+            "loops_contradicted": chk["contradicted"],
+            "loop_errors": [(r["keyframe"], r["frame"], round(r.get("loop_err_m", -1), 3),
+                             round(r.get("loop_err_deg", -1), 2), rec.get("inliers"), rec.get("points"),
+                             None if rec.get("cross_deg") is None else round(rec["cross_deg"], 2),
+                             None if rec.get("cross_dist") is None else round(rec["cross_dist"], 4))
+                            for r, rec in zip(chk["loops"], fe.loops)],
+            "refused": [(r["keyframe"], r["frame"], r.get("cross_deg"), r.get("why")) for r in fe.loops_refused]}
+
+
+def main(argv=None) -> int:
+    from fmapping.config import load_config
+    from fmapping.runtime import retain_freed_memory
+    from fmapping.slam import SlamConfig
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("data", nargs="+")
+    ap.add_argument("--config", default=None, help="slam config YAML (the mono / tracker sections count)")
+    ap.add_argument("--max-frames", type=int, default=None)
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args(argv)
+    retain_freed_memory()
+    import torch
+    torch.set_num_threads(1)
+    res = []
+    for d in a.data:
+        cfg = load_config(SlamConfig(), a.config) if a.config else SlamConfig()
+        r = run(d, cfg, a.max_frames)
+        print(json.dumps(r), flush=True)
+        res.append(r)
+    if a.json:
+        Path(a.json).write_text(json.dumps(res, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
