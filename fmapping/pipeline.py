@@ -251,12 +251,15 @@ def run_map(args, should_stop: StopFn = None) -> dict:
     if not used and stopped_at is None:
         raise ValueError(f"no frame of {args.data} has a pose")
     if stopped_at is None:
-        mapper.finish()
-    elif not mapper.initialized:
+        try:
+            mapper.finish()
+        except Cancelled:  # in the closing stage: every frame was given, the map is as far as it got
+            stopped_at = len(ds)
+    if stopped_at is not None and not mapper.initialized:
         log.warning("stopped before frame %d, before the mapper's init stage ended: no map to write", stopped_at)
         return write_stats(out, {"dataset": ds.describe(), "frames_used": len(used), "stopped_at": stopped_at},
                            {"out": str(out), "frames": len(used), "stopped_at": stopped_at, "points": 0})
-    else:
+    if stopped_at is not None:
         log.warning("stopped before frame %d of %d: exporting the map so far", stopped_at, len(ds))
     t_map = time.perf_counter() - t_start
 

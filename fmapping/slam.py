@@ -316,7 +316,11 @@ class SlamRun:
                 self.stopped_at = max(self.est, default=-1) + 1
             self.notes.append(f"stopped on request before frame {self.stopped_at}; no closing optimisation")
             return
-        self.finish()
+        try:
+            self.finish()
+        except Cancelled:  # during the closing optimisation: every frame has its pose, the map is as far as it got
+            self.stopped_at = len(self.ds)
+            self.notes.append("stopped on request during the closing optimisation")
 
     def run_external(self) -> None:
         poses = self._external_poses()

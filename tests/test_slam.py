@@ -302,3 +302,37 @@ def test_map_job_stopped_on_request_exports_the_map_so_far(scene, tmp_path, monk
             assert len(traj) == want_frames and sorted(seen["cloud"]["poses"]) == [0, 3, 6, 9]
         else:
             assert "cloud" not in seen and not (out / "traj.txt").exists()
+
+
+@pytest.mark.parametrize("job", ["map", "slam"])
+def test_a_stop_during_the_closing_stage_still_writes_every_frame(job, scene, tmp_path, monkeypatch):
+    """The stop request comes once every frame is mapped, inside the mapper's closing optimisation
+    (Ctrl-C or SIGTERM there raised Cancelled out of fmapping map / slam, with nothing written): the run
+    ends with every frame's pose, the map as far as it got, and stopped_at = the number of frames."""
+    import textwrap
+
+    import fmapping.pipeline as pipeline
+    import fmapping.slam as slam
+    from fmapping.mapper import Mapper
+
+    monkeypatch.setattr(pipeline, "_heldout_psnr", lambda *a, **k: 12.5)
+    seen = _fake_exporters(monkeypatch, (np.zeros((1, 3)), np.zeros((1, 3), np.uint8)),
+                           (np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8)))
+    closing = []
+    real_finish = Mapper.finish
+    monkeypatch.setattr(Mapper, "finish", lambda self: closing.append(True) or real_finish(self))
+    root, _ = scene
+    tiny = TINY.replace("final_global_iters: 0", "final_global_iters: 5")
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(tiny if job == "slam" else textwrap.dedent(tiny.replace("mapper:\n", "")))
+    out = tmp_path / job
+    args = _args(root, out, cfg, poses="gt", export=True, field=None, max_frames=12)
+    stats = (pipeline.run_map if job == "map" else slam.run_slam)(args, should_stop=lambda: bool(closing))
+    assert len(closing) == 1 and stats["summary"]["stopped_at"] == 12
+    if job == "slam":
+        assert "stopped on request during the closing optimisation" in stats["notes"]
+    ts, traj = read_tum_trajectory(out / "traj.txt")
+    _, gt = read_tum_trajectory(root / "groundtruth.txt")
+    assert len(ts) == 12
+    np.testing.assert_allclose(traj, gt[:12], atol=1e-6)  # given poses: written as given
+    assert "cloud" in seen and json.loads((out / "stats.json").read_text())["summary"]["stopped_at"] == 12
