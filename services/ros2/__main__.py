@@ -101,8 +101,9 @@ def run(svc: Service, args) -> int:
     if args.image_topic:
         svc.subscribe(core.in_key("image"), "image")
         svc.subscribe(core.in_key("camera_info"), "camera_info")
-    svc.log.info("ROS 2 bridge (%s keys): %s -> %s, %s; %s, %s -> %s", args.key_style, svc.keys.poses(args.pose_source),
-                 core.out_key("pose"), core.out_key("path"), core.in_key("image") if args.image_topic else "-",
+    svc.log.info("ROS 2 bridge (%s keys): %s -> %s, %s; %s -> %s; %s, %s -> %s", args.key_style,
+                 svc.keys.poses(args.pose_source), core.out_key("pose"), core.out_key("path"), svc.keys.points,
+                 core.out_key("points"), core.in_key("image") if args.image_topic else "-",
                  core.in_key("camera_info") if args.image_topic else "-", svc.keys.frames)
     svc.start()
     while not svc.shutdown.requested:
