@@ -160,6 +160,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "OUT/run.rrd; auto: live when there is a display and a terminal, else save (default: auto)")
     p.add_argument("--view-port", type=int, default=9090, help="web viewer port of --view live (default: 9090)")
     p.add_argument("--grpc-port", type=int, default=9876, help="rerun gRPC port of --view live (default: 9876)")
+    p.add_argument("--resume", default=None, metavar="OUT",
+                   help="continue the run of fmapping up in OUT that was killed: the same arguments, the mapper "
+                        "from its checkpoint, play from the first frame it had not mapped, the tracker "
+                        "re-localised against its last keyframe, record adding to its files")
     p.add_argument("--insecure", action="store_true",
                    help="local debugging only: no per-run credentials and no access control, the services form "
                         "an open zenoh peer mesh on loopback that any local process can join (default: secure, "

@@ -21,7 +21,10 @@ reads to show progress. At the end of the sequence play sends the end-of-sequenc
 the mapper runs its closing stage and writes OUT/map.ply, OUT/mesh.ply, OUT/traj.txt and
 OUT/stats.json; record and view finish after it. A mapper, tracker, recorder or viewer that
 crashes while play streams is started again (at most 3 times, backoff 1, 2, 4 s; counted in
-OUT/up.json ``restarts``); the mapper resumes from its checkpoint. Ctrl-C (or SIGTERM) stops
+OUT/up.json ``restarts``); the mapper resumes from its checkpoint, the mono tracker re-localises
+against its saved keyframes (OUT/tracker/state.npz), and play sends a restarted service the frames
+it never handled (``io play --resend-to``). ``fmapping up --resume OUT`` continues a run whose
+launcher was killed (its arguments are in OUT/run.json). Ctrl-C (or SIGTERM) stops
 every process (SIGINT, then SIGKILL after a grace period); the mapper still writes its current map.
 
 This module only starts processes and reads files: it does not import zenoh.
@@ -409,8 +412,61 @@ def _progress(procs: dict[str, Proc], t0: float) -> str:
     return " | ".join(parts)
 
 
+RUN_FILE = "run.json"  # OUT/run.json: the arguments of a run, for fmapping up --resume OUT
+
+
+def save_run_args(args, out: Path) -> None:
+    """OUT/run.json: the arguments of this run (its config file copied to OUT/config/up.yaml), so that
+    ``fmapping up --resume OUT`` can continue it."""
+    keep = {k: v for k, v in vars(args).items() if k not in ("command", "resume")
+            and isinstance(v, (str, int, float, bool, list, tuple, type(None)))}
+    if keep.get("config"):
+        copy = out / "config" / "up.yaml"
+        copy.parent.mkdir(parents=True, exist_ok=True)
+        if Path(keep["config"]).resolve() != copy.resolve():
+            copy.write_text(Path(keep["config"]).read_text())
+        keep["config"] = str(copy)
+    (out / RUN_FILE).write_text(json.dumps(keep, indent=1))
+
+
+def resume_args(folder) -> argparse.Namespace:
+    """The arguments of the run in ``folder`` to continue it (``fmapping up --resume OUT``), or
+    ValueError with one line saying why there is nothing to resume."""
+    out = Path(folder)
+    try:
+        saved = json.loads((out / RUN_FILE).read_text())
+    except OSError:
+        raise ValueError(f"--resume {out}: no run of fmapping up to resume there (no {RUN_FILE})") from None
+    except ValueError:
+        raise ValueError(f"--resume {out}: {out / RUN_FILE} is not readable JSON") from None
+    if not isinstance(saved, dict):
+        raise ValueError(f"--resume {out}: {out / RUN_FILE} does not hold the arguments of a run")
+    if not (out / "checkpoint.pt").is_file():
+        try:
+            done = "error" not in json.loads((out / "up.json").read_text())
+        except (OSError, ValueError):
+            done = False
+        raise ValueError(f"--resume {out}: " + ("the run there completed, nothing to resume" if done else
+                         "no checkpoint.pt (the mapper never finished a window): start the run again without --resume"))
+    if isinstance(saved.get("data"), str) and saved["data"].startswith("camera:"):
+        raise ValueError(f"--resume {out}: the run played a live camera ({saved['data']}), which cannot go back")
+    return argparse.Namespace(**{**saved, "out": str(out), "resume": True})
+
+
+def start_over(out: Path) -> None:
+    """A new run in OUT: what an earlier, unfinished run left to resume from is not this run's."""
+    if (out / "checkpoint.pt").exists():
+        (out / "checkpoint.pt").unlink()
+        print(f"fmapping up: starting over: removed the checkpoint of an earlier unfinished run in {out} "
+              f"(fmapping up --resume {out} continues such a run)", flush=True)
+    tracker_state(out).unlink(missing_ok=True)
+
+
 def run_up(args) -> int:
     """Run the system (see the module docstring); returns the exit code."""
+    if isinstance(getattr(args, "resume", None), str):  # fmapping up --resume OUT
+        args = resume_args(args.resume)
+    resuming = getattr(args, "resume", None) is True
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     mapper_cfg, tracker_cfg, opts = split_config(getattr(args, "config", None), out)
@@ -454,7 +510,12 @@ def run_up(args) -> int:
     # errors in data or configs: before any process
     info = run_info(data, poses, mapper_cfg, tracker_cfg, opts, camera, source_options(args))
     started = time.time()
-    tracker_state(out).unlink(missing_ok=True)  # an earlier run's keyframe: not this run's world
+    if resuming:
+        print(f"fmapping up: resuming the run in {out}: the mapper from its checkpoint, play from the first frame "
+              "it had not mapped", flush=True)
+    else:
+        start_over(out)
+        save_run_args(args, out)
     if not insecure:
         from services.credentials import make_run_credentials
 
@@ -501,7 +562,8 @@ def run_up(args) -> int:
         procs["mapper"] = Proc("mapper", mapper_argv, out, env)
         _wait_ready([procs["mapper"]], opts.start_timeout)
         procs["record"] = Proc("record", py + ["services.io", "record", "--out", str(out / "record"),
-                                               "--source", record_src] + net("record") + first_wait, out, env)
+                                               "--source", record_src] + (["--append"] if resuming else [])
+                               + net("record") + first_wait, out, env)
         later = [procs["record"]]
         view = view_mode(getattr(args, "view", None)) if opts.view else ""
         if view:
@@ -531,7 +593,7 @@ def run_up(args) -> int:
         play_argv = py + ["services.io", "play"] + play_source_argv(data, args) + [
             "--fps", str(getattr(args, "fps", None) or 0), "--window", str(window), "--ack-from", "mapper",
             "--wait-for", ",".join(wait_for), "--start-timeout", str(play_start_timeout)] \
-            + resend_argv(poses, live) + net("play")
+            + resend_argv(poses, live) + (["--start-after", "mapper"] if resuming else []) + net("play")
         procs["play"] = Proc("play", play_argv, out, env)
         if view == "live":
             print(f"fmapping up: live viewer at {live_url(args)} (the recording also goes to {out / 'run.rrd'})",

@@ -140,6 +140,106 @@ def test_kill_9_of_the_tracker_relocalises_and_loses_at_most_one_window(fault_sc
     assert se3["killed"] <= 1.5 * se3["clean"]
 
 
+def _gone(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    try:  # a zombie (exited, not yet reaped by its parent) counts as gone
+        return open(f"/proc/{pid}/stat").read().split(")")[-1].split()[0] == "Z"
+    except OSError:
+        return True
+
+
+@pytest.mark.slow
+def test_fmapping_up_resume_continues_a_killed_run(fault_scene, tmp_path):
+    """The launcher itself is killed with -9 mid-run (its services stop with it, writing what they
+    have). ``fmapping up --resume OUT`` continues that run: the mapper from its checkpoint, play from
+    the first frame the mapper had not integrated, the tracker re-localised against its saved
+    keyframe, record adding to its files. The outputs are those of an undisturbed run of the same
+    data, less at most one window, with the trajectory's error of the undisturbed run."""
+    from fault_helpers import up_argv
+
+    scene, cfg, _ = fault_scene
+    clean = _clean_run(fault_scene, "tracker")
+    out = tmp_path / "out"
+    launcher = subprocess.Popen(up_argv(scene, out, "tracker", cfg), cwd=ROOT, env=subprocess_env(),
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 300
+    try:
+        while True:
+            assert launcher.poll() is None and time.monotonic() < deadline, "the mapper never reached frame 24"
+            st = _status_of(out, "mapper")
+            if st.get("frame_seq", -1) >= FAULT_FRAMES // 2 and (out / "checkpoint.pt").is_file():
+                break
+            time.sleep(0.05)
+        pids = [_status_of(out, n).get("pid") for n in ("play", "tracker", "mapper", "record")]
+        launcher.kill()
+        launcher.wait(timeout=10)
+        while not all(_gone(p) for p in pids if p):  # --exit-with-parent: they stop with the launcher
+            assert time.monotonic() < deadline, f"services still running after the launcher was killed: {pids}"
+            time.sleep(0.1)
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+    assert (out / "checkpoint.pt").is_file() and (out / "tracker" / "state.npz").is_file()
+    killed_at = int(torch_free_checkpoint_seq(out))
+    res = subprocess.run([sys.executable, "-m", "fmapping.cli", "up", "--resume", str(out)], cwd=ROOT,
+                         env=subprocess_env(), capture_output=True, text=True, timeout=400)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    from fmapping.launcher import demo_metrics
+
+    metrics = demo_metrics(out, scene)
+    up = json.loads((out / "up.json").read_text())
+    counters = {n: v["counters"] for n, v in up["status"].items()}
+    assert counters["mapper"]["resumes"] == 1 and counters["play"]["started_after"] == counters["mapper"]["resumed_at_seq"]
+    assert "bootstrap_frame" not in counters["tracker"] and counters["tracker"]["resumed_at"] > killed_at
+    run = type(clean)(rc=0, log="", out=out, metrics=metrics)
+    lost = set(_mapped(clean)) - set(_mapped(run))
+    record = {p.name: len(p.read_text().splitlines()) for p in (out / "record").glob("traj_*.txt")}
+    se3 = (metrics["trajectory"]["ate_se3_cm"], clean.metrics["trajectory"]["ate_se3_cm"])
+    print(f"\n[resume] launcher killed with the mapper's checkpoint at frame {killed_at}; resumed: play from frame "
+          f"{counters['play']['started_after'] + 1}, tracker re-localised at {counters['tracker']['resumed_at']} "
+          f"against keyframe {counters['tracker']['resume_keyframe']}; {run.frames} of {clean.frames} frames mapped "
+          f"({len(lost)} lost), record {record}; ATE (no alignment) {se3[0]:.2f} cm vs {se3[1]:.2f} cm undisturbed")
+    assert len(lost) <= SMALL_MAPPER["new_frames_per_window"]
+    assert se3[0] <= 1.5 * se3[1]
+    # record added the second part to the poses of the first: every frame the mapper has is in its files
+    assert min(record.values()) >= run.frames
+
+
+def _status_of(out, name: str) -> dict:
+    try:
+        return json.loads((out / "status" / f"{name}.json").read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def torch_free_checkpoint_seq(out) -> int:
+    """The newest frame in the mapper's checkpoint, read as the mapper does (weights_only)."""
+    import torch
+
+    return int(torch.load(out / "checkpoint.pt", map_location="cpu", weights_only=True)["service"]["last_seq"])
+
+
+@pytest.mark.parametrize("case", ["empty", "no-checkpoint", "completed"])
+def test_fmapping_up_resume_refuses_a_folder_without_a_resumable_run(tmp_path, case):
+    """``--resume OUT`` on a folder without a run, a run whose mapper never checkpointed, or a run that
+    completed: one line saying so, rc 2, no traceback, nothing started."""
+    out = tmp_path / "out"
+    out.mkdir()
+    if case != "empty":
+        (out / "run.json").write_text(json.dumps({"data": str(tmp_path / "scene"), "poses": "gt", "out": str(out)}))
+    if case == "completed":
+        (out / "up.json").write_text(json.dumps({"seconds": 3.0, "outputs": {}}))
+    res = subprocess.run([sys.executable, "-m", "fmapping.cli", "up", "--resume", str(out)], cwd=ROOT,
+                         env=subprocess_env(), capture_output=True, text=True, timeout=120)
+    want = {"empty": "no run of fmapping up to resume there", "no-checkpoint": "no checkpoint.pt",
+            "completed": "the run there completed"}[case]
+    assert res.returncode == 2 and want in res.stderr and "Traceback" not in res.stderr, res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and not (out / "logs").exists()
+
+
 @pytest.mark.slow
 def test_a_router_port_taken_before_it_binds_is_replaced(scene, tmp_path, monkeypatch, capsys):
     """free_port() then bind is a race: when someone takes the router's port first, the router
@@ -224,14 +324,17 @@ def test_a_restarted_mono_tracker_relocalises_against_its_saved_keyframe(room320
     first = TrackerCore(opts=TrackerServiceOptions(state_path=str(state)))
     _feed_frames(first, ds, range(cut))
     assert state.is_file() and first.counters.get("states_saved") >= 1
-    saved = int(np.load(state)["index"])
+    from services.tracker import load_resume_state
+
+    kept = load_resume_state(state)
+    saved = kept[-1]["index"]  # the newest: the one nearest to the next frame
     assert first.counters.get("bootstrap_frame") < saved < cut
     again = TrackerCore(opts=TrackerServiceOptions(state_path=str(state)))  # the restarted process
     assert again.counters.get("resume_keyframe") == saved
     after = _feed_frames(again, ds, range(cut, n))
     assert again.counters.get("resumed_at") == cut and again.counters.get("bootstrap_frame", -1) == -1
     assert sorted(after) == list(range(cut, n)) and all(p.quality > 0 for p in after.values())
-    kf_err = 100 * np.linalg.norm(np.load(state)["c2w"][:3, 3] - ds[saved].c2w[:3, 3])  # what it inherits
+    kf_err = 100 * np.linalg.norm(kept[-1]["c2w"][:3, 3] - ds[saved].c2w[:3, 3])  # what it inherits
     undisturbed = _feed_frames(TrackerCore(), ds, range(n))
     gt = np.stack([ds[i].c2w for i in range(cut, n)])
     err = {name: 100 * ate(np.stack([poses[i].c2w for i in range(cut, n)]), gt, "none")["rmse_m"]
@@ -242,3 +345,38 @@ def test_a_restarted_mono_tracker_relocalises_against_its_saved_keyframe(room320
           f"{kf_err:.2f} cm off")
     # it goes on from the keyframe's pose: its error, on top of the tracking error of a tracker never stopped
     assert err["restarted"] <= 1.5 * err["undisturbed"] + kf_err
+
+
+def test_with_resent_frames_the_mapper_waits_for_the_restarted_source_to_answer_them(dataset):
+    """io play sends a restarted tracker the frames it never answered (--resend-to); the mapper
+    (resent_frames) keeps the frames waiting for a pose until the new tracker answers. Only frames
+    before the new tracker's first answer are skipped: it answers in order and never goes back."""
+    from fmapping import protocol as P
+    from service_helpers import feed, gt_messages, small_cfg
+    from services.mapper import MapperCore, MapperServiceOptions
+
+    core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="tracker", resent_frames=True))
+    feed(core, dataset, range(4), source="tracker")  # the init
+    for i in (4, 5, 6, 7):
+        core.handle("frames", gt_messages(dataset, i, "tracker")[1])
+    core.on_source_status(P.Status(service="tracker", seq=40))
+    core.on_source_status(P.Status(service="tracker", seq=1))  # restarted
+    assert core.ack == 3 and core.counters.get("source_restarts") == 1 and not core.counters.get("orphaned_frames")
+    for i in (4, 5):  # the new tracker answers the frames sent again
+        core.handle("poses", gt_messages(dataset, i, "tracker")[0])
+    assert core.ack == 5 and core.seq_of_fid[-2:] == [4, 5]
+    core.on_source_status(P.Status(service="tracker", seq=0))  # restarted again, then answers from frame 7 on
+    core.handle("poses", gt_messages(dataset, 7, "tracker")[0])
+    assert core.ack == 7 and core.counters.get("orphaned_frames") == 1 and core.seq_of_fid[-1] == 7
+
+
+def test_a_state_file_that_is_not_one_is_ignored(tmp_path):
+    """A damaged or foreign tracker state file: logged and ignored (the tracker bootstraps as usual)."""
+    from services.tracker import TrackerCore, TrackerServiceOptions
+
+    state = tmp_path / "state.npz"
+    for content in (b"not an npz", b""):
+        state.write_bytes(content)
+        assert TrackerCore(opts=TrackerServiceOptions(state_path=str(state))).resume_state is None
+    np.savez(state, k0_index=np.array(3))  # an npz without the keyframe's arrays
+    assert TrackerCore(opts=TrackerServiceOptions(state_path=str(state))).resume_state is None

@@ -905,33 +905,44 @@ class MonoFrontend:
         return np.stack(self._lm) if self._lm else np.zeros((0, 3))
 
     # ================================================================== restart
-    def keyframe_state(self) -> Optional[dict]:
-        """What a restarted front end needs to go on in this world frame and scale (:meth:`resume`):
-        the current keyframe's frame number, grey image and pose, and the landmarks it observed (world
-        points and their pixels there). None before the bootstrap and while the scale is pending."""
-        k = self._kf_index
-        gray = getattr(self, "_kf_gray", None)
-        if not self.initialized or self.scale_pending or k not in self._kf_pose or gray is None:
-            return None
-        seen = {int(o[1]): (o[2], o[3]) for o in self._obs if o[0] == k}
-        if not seen:
-            return None
-        lids = np.array(sorted(seen), np.int64)
-        prev = max((j for j in self._kf_pose if j < k), default=k)  # for a motion guess (resume)
-        return {"index": int(k), "gray": np.asarray(gray, np.uint8), "c2w": self._kf_pose[k].copy(),
-                "world": np.stack([self._lm[i] for i in lids]).astype(np.float64),
-                "uv": np.array([seen[i] for i in lids], np.float64),
-                "prev_index": int(prev), "prev_c2w": self._kf_pose[prev].copy()}
+    def keyframe_states(self, n: int = 5) -> list:
+        """What a restarted front end needs to go on in this world frame and scale (:meth:`resume`): for
+        the newest ``n`` keyframes of the bundle-adjustment window (oldest first), the frame number, grey
+        image and pose, and the landmarks it observed (world points and their pixels there). Empty
+        before the bootstrap and while the scale is pending."""
+        if not self.initialized or self.scale_pending:
+            return []
+        out = []
+        for k in self._window[-n:]:
+            seen = {int(o[1]): (o[2], o[3]) for o in self._obs if o[0] == k}
+            if k not in self._kf_pose or k not in self._kf_rgb or len(seen) < self.cfg.min_ref_points:
+                continue
+            lids = np.array(sorted(seen), np.int64)
+            prev = max((j for j in self._kf_pose if j < k), default=k)  # for a motion guess (resume)
+            out.append({"index": int(k), "gray": to_u8(self._kf_rgb[k]), "c2w": self._kf_pose[k].copy(),
+                        "world": np.stack([self._lm[i] for i in lids]).astype(np.float64),
+                        "uv": np.array([seen[i] for i in lids], np.float64),
+                        "prev_index": int(prev), "prev_c2w": self._kf_pose[prev].copy()})
+        return out
 
-    def resume(self, index: int, rgb: np.ndarray, state: dict) -> Optional[np.ndarray]:
-        """Start from a saved keyframe (``state`` of :meth:`keyframe_state`) instead of a bootstrap:
-        frame ``index`` is located among that keyframe's landmarks (KLT from the keyframe's image,
-        rotated into the view, then PnP: :func:`~fmapping.tracking.loop.locate_in_keyframe`). When
+    def resume(self, index: int, rgb: np.ndarray, states: list) -> Optional[np.ndarray]:
+        """Start from saved keyframes (``states`` of :meth:`keyframe_states`) instead of a bootstrap:
+        frame ``index`` is located among the landmarks of the keyframe nearest to it in frame number
+        (KLT from the keyframe's image, rotated into the view, then PnP:
+        :func:`~fmapping.tracking.loop.locate_in_keyframe`), the next nearest when that fails. When
         it is found, it becomes the first keyframe, at the located pose, holding the located
         landmarks, and tracking goes on from it in the saved world frame and scale: returns its
         pose. None when the images do not agree (the front end is unchanged). The pose is searched
         from guesses along the keyframes' motion, continued at constant velocity up to frame
         ``index`` (the frames between went by unseen); the guess locating most landmarks wins."""
+        for state in sorted(states, key=lambda st: (abs(index - int(st["index"])), -int(st["index"]))):
+            c2w = self._resume_from(index, rgb, state)
+            if c2w is not None:
+                return c2w
+        return None
+
+    def _resume_from(self, index: int, rgb: np.ndarray, state: dict) -> Optional[np.ndarray]:
+        """:meth:`resume` against one saved keyframe."""
         gray = to_u8(rgb)
         c2w_kf = np.asarray(state["c2w"], np.float64)
         best = None
@@ -959,7 +970,10 @@ class MonoFrontend:
         self._rel = {index: (index, np.eye(4))}
         self._last_gray = gray
         self.tracker.reset_motion([c2w])
-        self._set_reference(index, rgb, gray)
+        try:
+            self._set_reference(index, rgb, gray)
+        except ValueError:
+            return None  # too few points with depth to track against (still uninitialised)
         if self.cfg.loop.enabled:
             self._kf_images = {index: gray}
         self.initialized, self.failed, self._buf = True, False, []
@@ -969,14 +983,15 @@ class MonoFrontend:
 
 
 def resume_guesses(state: dict, index: int, n: int = 8) -> list:
-    """Pose guesses for frame ``index`` after a saved keyframe ``state`` (:meth:`MonoFrontend.keyframe_state`):
+    """Pose guesses for frame ``index`` after a saved keyframe ``state`` (one of :meth:`MonoFrontend.keyframe_states`):
     the keyframe's pose moved on at the velocity between its previous keyframe and it, by 0 to
-    1.5 times the frames in between (``n`` + 1 guesses; the keyframe's pose alone without a previous one)."""
+    1.5 times the frames in between, backwards for a frame before the keyframe (``n`` + 1 guesses;
+    the keyframe's pose alone without a previous keyframe)."""
     import cv2
 
     c2w, k = np.asarray(state["c2w"], np.float64), int(state["index"])
     prev, kp = np.asarray(state.get("prev_c2w", c2w), np.float64), int(state.get("prev_index", k))
-    if kp >= k or index <= k:
+    if kp >= k or index == k:
         return [c2w]
     rvec = cv2.Rodrigues(prev[:3, :3].T @ c2w[:3, :3])[0].ravel() / (k - kp)  # per frame, in the camera frame
     vel = (c2w[:3, 3] - prev[:3, 3]) / (k - kp)  # per frame, in the world

@@ -18,6 +18,11 @@ for the last acknowledgement, then publishes ``Control(stop, {reason: end, last_
 Control: pause / resume / stop / reset (restart from the first frame; frame numbers
 keep increasing) / start (begin when launched with ``--paused``).
 
+Restarts: a consumer named in ``--resend-to`` whose status counter starts over gets the frames
+after what it has done sent again, with their frame numbers (a resumed mapper from its
+checkpoint's frame, a restarted tracker from its last acknowledgement). ``--start-after mapper``
+begins with the frame after the mapper's acknowledgement (``fmapping up --resume``).
+
 ``--data`` is any source fmapping reads, with the options of ``fmapping info`` / ``map`` / ``slam``
 (``--camera``, ``--max-frames``, ``--topic``; their ``--fps``, the timestamps of an image folder or a
 video, is ``--data-fps`` here). ``--data camera:N`` streams a live webcam
@@ -62,6 +67,9 @@ def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="comma-separated consumers to which the frames they never handled are sent again (same "
                         "frame numbers) when they restart: from a restarted tracker's last acknowledgement, or a "
                         "mapper's resumed one (not for a live camera)")
+    p.add_argument("--start-after", default=None, metavar="SERVICE",
+                   help="begin with the frame after the one SERVICE acknowledges when playback starts (a mapper "
+                        "resumed from its checkpoint: fmapping up --resume), with the frame numbers of a full run")
     p.add_argument("--loop", action="store_true", help="start over at the end (frame numbers keep increasing)")
     p.add_argument("--paused", action="store_true", help="wait for a 'start' or 'resume' control before playing")
     p.add_argument("--no-gt", action="store_true", help="do not publish ground-truth poses on poses/gt")
@@ -260,7 +268,7 @@ class Player:
         else:
             ts = np.asarray(ds.timestamps, np.float64)
             self.period = float(ts[-1] - ts[0]) + (float(np.median(np.diff(ts))) if n > 1 else 1.0)
-        loop, i = 0, 0
+        loop, i = self._start_index(n)
         t_start = time.monotonic()
         sent_at_start = 0
         while not self._halt():
@@ -310,6 +318,19 @@ class Player:
             svc.status.update(frame_seq=seq, lag=float(seq - m) if m is not None else 0.0)
             i += 1
         return self._finish()
+
+    def _start_index(self, n: Optional[int]) -> tuple[int, int]:
+        """(loop, dataset index) of the first frame: 0, 0, or with ``--start-after S`` the frame after S's
+        acknowledgement (whose number it keeps: ``seq`` goes on from there)."""
+        name = getattr(self.args, "start_after", None)
+        ack = self.peers.acked(name) if name else -1
+        if ack < 0 or n is None:
+            return 0, 0
+        self.seq = ack
+        self.svc.counters.set("started_after", ack)
+        self.svc.log.info("%s has frames up to %d: starting with frame %d", name, ack, ack + 1)
+        loop, i = divmod(ack + 1, n)
+        return (0, n) if loop and not self.args.loop else (loop, i)  # all played: straight to the end
 
     def _finish(self) -> int:
         svc, a = self.svc, self.args

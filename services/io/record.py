@@ -36,6 +36,9 @@ def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--wait-done", default="mapper", help="services whose 'done' status ends the recording at the end of a sequence")
     p.add_argument("--final-timeout", type=float, default=120.0, help=FINAL_TIMEOUT_HELP)
     p.add_argument("--max-poses", type=int, default=1_000_000, help="per source")
+    p.add_argument("--append", action="store_true",
+                   help="keep the poses of the traj_<source>.txt files already in --out (a resumed run): the "
+                        "files are written with them, the poses of this run replacing those of the same frames")
     add_first_message_arg(p, "pose")
     return add_common_args(p)
 
@@ -57,6 +60,17 @@ class Recorder:
         self.points: Optional[P.PointsSnapshot] = None
         self.rejected: dict[str, int] = {}  # reason -> count
         self.last_rejection = ""
+        self.earlier: dict[str, dict[float, np.ndarray]] = {}  # --append: source -> {timestamp: c2w} on disk
+
+    def load_earlier(self) -> int:
+        """--append: the poses of the trajectories an earlier part of the run wrote to ``out``
+        (``traj_<source>.txt``); returns how many."""
+        from fmapping.trajectory import read_tum_trajectory
+
+        for path in sorted(self.out.glob("traj_*.txt")):
+            ts, c2w = read_tum_trajectory(path)
+            self.earlier[path.stem[len("traj_"):]] = {round(float(t), 6): np.asarray(p) for t, p in zip(ts, c2w)}
+        return sum(len(d) for d in self.earlier.values())
 
     def _reject(self, counter: str, why: str) -> bool:
         self.rejected[counter] = self.rejected.get(counter, 0) + 1
@@ -96,16 +110,19 @@ class Recorder:
         self.out.mkdir(parents=True, exist_ok=True)
         summary: dict = {"poses": {}, "points": 0, "files": []}
         unplayed = 0
-        for src, d in sorted(self.poses.items()):
+        for src in sorted(set(self.poses) | set(self.earlier)):
+            d = self.poses.get(src, {})
             seqs = self.played_poses(d)
             unplayed += len(d) - len(seqs)
-            if not seqs:
+            merged = dict(self.earlier.get(src, {}))
+            merged.update({round(float(d[s][0]), 6): d[s][1] for s in seqs})  # this run's pose of a frame wins
+            if not merged:
                 continue
-            ts = np.array([d[s][0] for s in seqs])
-            c2w = np.stack([d[s][1] for s in seqs])
+            ts = np.array(sorted(merged))
+            c2w = np.stack([merged[t] for t in ts])
             path = write_tum_trajectory(self.out / f"traj_{src}.txt", ts, c2w)
             summary["files"].append(str(path))
-            summary["poses"][src] = len(seqs)
+            summary["poses"][src] = len(merged)
             if src == self.source:
                 summary["files"].append(str(write_tum_trajectory(self.out / "traj.txt", ts, c2w)))
         if self.points is not None and len(self.points.points):
@@ -170,6 +187,8 @@ def _kept(svc: Service, rec: Recorder, kept: bool) -> bool:
 
 def run(svc: Service, args) -> int:
     rec = Recorder(args.out, args.source, args.max_poses)
+    if getattr(args, "append", False):
+        svc.log.info("appending to the %d poses already in %s", rec.load_earlier(), args.out)
     peers = Peers()
     wait_done = names(args.wait_done)
     # decoded before queueing: a bad message is counted in the callback and never displaces a real one

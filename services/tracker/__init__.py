@@ -81,6 +81,7 @@ class TrackerServiceOptions:
     # same world frame and scale (:meth:`MonoFrontend.resume`) instead of a new bootstrap (None: not kept)
     state_path: Optional[str] = None
     resume_tries: int = 5  # frames a restarted tracker tries to re-localise before it bootstraps anew
+    resume_keyframes: int = 5  # newest keyframes kept (the nearest in frame number to the first new frame is tried first)
 
     def validate(self) -> "TrackerServiceOptions":
         if self.frontend not in ("mono", "map"):
@@ -133,10 +134,11 @@ class TrackerCore(ServiceCore):
         self._ref_target: Optional[int] = None  # frame to make the next reference at
         self._motion_seq = -1  # frame of the newest pose in the tracker's motion model
         self.last_track: dict = {}
-        self.resume_state: Optional[dict] = load_resume_state(self.opts.state_path) if self.opts.state_path else None
-        self._saved_keyframe = -1  # keyframe of the state on disk
+        # saved keyframes of the process before a restart (oldest first), None once used or given up
+        self.resume_state: Optional[list] = load_resume_state(self.opts.state_path) if self.opts.state_path else None
+        self._saved_keyframe = -1  # newest keyframe of the state on disk
         if self.resume_state is not None:
-            self.counters.set("resume_keyframe", int(self.resume_state["index"]))
+            self.counters.set("resume_keyframe", int(self.resume_state[-1]["index"]))
 
     @property
     def ack(self) -> int:
@@ -342,8 +344,8 @@ class TrackerCore(ServiceCore):
                                  quality=own.quality))]
 
     def _resume_mono(self, seq: int, f: P.Frame) -> list[Output]:
-        """A restarted tracker: re-localise frame ``seq`` against the saved keyframe (``resume_state``)
-        and go on from there in its world frame and scale; after ``resume_tries`` misses, bootstrap
+        """A restarted tracker: re-localise frame ``seq`` against the saved keyframes (``resume_state``)
+        and go on from there in their world frame and scale; after ``resume_tries`` misses, bootstrap
         anew (the frames missed are answered with ``quality = 0``)."""
         t0 = time.perf_counter()
         c2w = self.mono.resume(seq, np.asarray(f.rgb), self.resume_state)
@@ -352,37 +354,38 @@ class TrackerCore(ServiceCore):
             self.counters.inc("resume_misses")
             if self.counters.get("resume_misses") >= self.opts.resume_tries:
                 self.resume_state = None
-                self.last_error = f"could not re-localise against keyframe {self.counters.get('resume_keyframe')}: " \
-                                  "bootstrapping anew"
+                self.last_error = f"could not re-localise against the saved keyframes (newest: " \
+                                  f"{self.counters.get('resume_keyframe')}): bootstrapping anew"
             return [self._skip(seq, f.timestamp)]
         self.resume_state = None
         self.counters.set("resumed_at", seq)
+        self.counters.set("resume_keyframe", int(self.mono.init_info["resumed_from"]))
         self.counters.set("resume_points", int(self.mono.init_info.get("points", 0)))
         self.counters.inc("frames_tracked")
         self._save_state()
         return self._publish_mono(seq, f.timestamp, c2w, 1.0)
 
     def _resume_fits(self) -> bool:
-        """Is there a saved keyframe to re-localise against, of the frames' size? (A misfit is dropped.)"""
+        """Are there saved keyframes to re-localise against, of the frames' size? (A misfit is dropped.)"""
         st = self.resume_state
-        if st is not None and st["gray"].shape != (self.camera.height, self.camera.width):
-            self.last_error = f"the saved keyframe's image is {st['gray'].shape}, not the frames' size: not resuming"
+        if st is not None and st[0]["gray"].shape != (self.camera.height, self.camera.width):
+            self.last_error = f"the saved keyframes' images are {st[0]['gray'].shape}, not the frames' size: not resuming"
             self.resume_state = st = None
         return st is not None
 
     def _save_state(self) -> None:
-        """The front end's current keyframe to ``state_path`` (atomically), when it changed."""
+        """The front end's newest keyframes to ``state_path`` (atomically), when they changed."""
         if not self.opts.state_path or self.mono is None or self.mono.keyframe_index == self._saved_keyframe:
             return
-        state = self.mono.keyframe_state()
-        if state is None:
+        state = self.mono.keyframe_states(self.opts.resume_keyframes)
+        if not state:
             return
         try:
             save_resume_state(self.opts.state_path, state)
         except OSError as e:
             self.last_error = f"tracker state not saved: {e}"
             return
-        self._saved_keyframe = state["index"]
+        self._saved_keyframe = self.mono.keyframe_index
         self.counters.inc("states_saved")
 
     def _advance_mono(self) -> list[Output]:
@@ -684,8 +687,9 @@ class TrackerCore(ServiceCore):
 RESUME_KEYS = {"index": 0, "gray": 2, "c2w": 2, "world": 2, "uv": 2, "prev_index": 0, "prev_c2w": 2}  # key: ndim
 
 
-def save_resume_state(path, state: dict) -> None:
-    """``state`` (:meth:`MonoFrontend.keyframe_state`) as an .npz, written atomically (temp file, fsync, rename)."""
+def save_resume_state(path, states: list) -> None:
+    """``states`` (:meth:`MonoFrontend.keyframe_states`) as one .npz (``k<i>_<key>``), written
+    atomically (temp file, fsync, rename)."""
     import os
     from pathlib import Path
 
@@ -693,31 +697,41 @@ def save_resume_state(path, state: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     with open(tmp, "wb") as fh:
-        np.savez(fh, **{k: np.asarray(state[k]) for k in RESUME_KEYS})
+        np.savez(fh, **{f"k{i}_{k}": np.asarray(st[k]) for i, st in enumerate(states) for k in RESUME_KEYS})
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, path)
 
 
-def load_resume_state(path) -> Optional[dict]:
-    """The state :func:`save_resume_state` wrote, or None when there is none or it is not one (logged)."""
+def _resume_entry(z, i: int) -> dict:
+    """Keyframe ``i`` of a loaded state file, checked (ValueError / KeyError when it is not one)."""
+    st = {k: np.array(z[f"k{i}_{k}"]) for k in RESUME_KEYS}
+    bad = [k for k, nd in RESUME_KEYS.items() if st[k].ndim != nd]
+    n = len(st["world"])
+    if bad or st["c2w"].shape != (4, 4) or st["world"].shape != (n, 3) or st["uv"].shape != (n, 2) \
+            or not all(np.isfinite(st[k]).all() for k in ("c2w", "world", "uv", "prev_c2w")):
+        raise ValueError(f"keyframe {i}: unexpected arrays {bad or 'shapes'}")
+    st["index"], st["prev_index"] = int(st["index"]), int(st["prev_index"])
+    return st
+
+
+def load_resume_state(path) -> Optional[list]:
+    """The keyframes :func:`save_resume_state` wrote (oldest first), or None when there is no such file
+    or it is not one (logged)."""
     from pathlib import Path
 
     if not Path(path).is_file():
         return None
     try:
         with np.load(path, allow_pickle=False) as z:
-            state = {k: np.array(z[k]) for k in RESUME_KEYS}
-        bad = [k for k, nd in RESUME_KEYS.items() if state[k].ndim != nd]
-        n = len(state["world"])
-        if bad or state["c2w"].shape != (4, 4) or state["world"].shape != (n, 3) or state["uv"].shape != (n, 2) \
-                or not all(np.isfinite(state[k]).all() for k in ("c2w", "world", "uv", "prev_c2w")):
-            raise ValueError(f"unexpected arrays {bad or 'shapes'}")
+            count = len({name.split("_", 1)[0] for name in z.files})
+            states = [_resume_entry(z, i) for i in range(count)]
+        if not states or len({st["gray"].shape for st in states}) != 1:
+            raise ValueError("no keyframes, or images of different sizes")
     except (OSError, ValueError, KeyError, EOFError) as e:
         log.warning("ignoring the tracker state %s: %s", path, e)
         return None
-    state["index"], state["prev_index"] = int(state["index"]), int(state["prev_index"])
-    return state
+    return states
 
 
 def min_field_elements(cfg) -> int:
