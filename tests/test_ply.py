@@ -106,15 +106,10 @@ def test_bad_files_are_named(tmp_path):
         read_ply(tmp_path / "oob.ply")
 
 
-def test_a_million_faces_read_quickly(tmp_path):
-    # the mapper writes meshes of this size; the row-by-row list reader took seconds for them
-    import time
-
+def test_a_million_faces_read_back_exactly(tmp_path):
+    # the mapper writes meshes of this size (read speed is measured in bench/, not asserted here)
     rng = np.random.default_rng(1)
     faces = rng.integers(0, 200_000, (1_000_000, 3))
     path = write_ply(tmp_path / "big.ply", rng.random((200_000, 3)), faces=faces)
-    t = time.perf_counter()
     d = read_ply(path)
-    seconds = time.perf_counter() - t
     np.testing.assert_array_equal(d.faces, faces)
-    assert seconds < 2.0, seconds  # about 0.05 s on an idle core; 3 s and more before
