@@ -24,7 +24,7 @@ demo: $(STAMP)
 	$(BIN)/fmapping demo --out $(DEMO)
 
 # Hours on 2 CPU cores: every benchmark, then the README table (bench/report.py).
-BENCHES := field_micro transport tracking mapping slam system real
+BENCHES := field_micro transport tracking mapping slam system faults real
 bench: $(STAMP)
 	for b in $(BENCHES); do $(BIN)/python bench/$$b.py || exit 1; done
 	$(BIN)/python bench/mapping.py --real-data

@@ -331,6 +331,21 @@ def system_table(name: str) -> str:
                "map compl. ratio", "map acc. cm", "after Sim3: compl. ratio", "acc. cm"], rows)]) + "\n"
 
 
+def faults_section() -> str:
+    d = load("faults")
+    if d is None:
+        return "### Faults (`bench/faults.py`)\n\nnot run\n"
+    import faults  # bench/faults.py: its table
+
+    st = d["settings"]
+    return "\n".join([
+        "### Faults (`bench/faults.py` -> `faults.json`)\n",
+        f"`fmapping up --poses tracker` on a synthetic room ({st['frames']} frames {st['size']}), secure default; "
+        "each run against the undisturbed one: hostile messages from the run's own play and tracker "
+        "credentials plus an outsider, kill -9 of a service, kill -9 of the launcher then `--resume`.\n",
+        faults.markdown(d)]) + "\n"
+
+
 def build() -> str:
     stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     parts = [f"Report built {stamp} on {machine()} by `python bench/report.py` from `bench/results/`; "
@@ -338,7 +353,7 @@ def build() -> str:
              "machine: the 2-core machines differ from run to run). `make bench` re-runs everything. "
              "The CPU is shared and its speed swings 3-4x: timings are min / median.\n",
              mapping_section(), tracking_section(), slam_section(), real_section(), system_section(),
-             transport_section(),
+             faults_section(), transport_section(),
              field_section()]
     pngs = sorted(p.name for p in RESULTS.glob("*.png"))
     if pngs:
