@@ -380,7 +380,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     retain_freed_memory()
     try:
-        if getattr(args, "out", None):
+        if getattr(args, "out", None) and not getattr(args, "resume", None):  # --resume OUT: that folder's run
             check_out(args.out)
         return COMMANDS[args.command](args) or 0
     except (FileNotFoundError, ValueError) as e:  # bad input: one clear line, no traceback

@@ -380,3 +380,19 @@ def test_a_state_file_that_is_not_one_is_ignored(tmp_path):
         assert TrackerCore(opts=TrackerServiceOptions(state_path=str(state))).resume_state is None
     np.savez(state, k0_index=np.array(3))  # an npz without the keyframe's arrays
     assert TrackerCore(opts=TrackerServiceOptions(state_path=str(state))).resume_state is None
+
+
+def test_the_tracker_answers_a_frame_sent_again_with_the_pose_it_gave_it(room320):
+    """After a mapper restart play sends the frames after the mapper's checkpoint again; the tracker
+    answered them already and answers again with the same pose (the resumed mapper waits for them)."""
+    from fmapping import protocol as P
+    from fmapping.datasets import open_dataset
+    from services.tracker import TrackerCore
+
+    ds = open_dataset(room320)
+    core = TrackerCore()
+    newest = _feed_frames(core, ds, range(20))
+    again = core.handle("frames", P.encode(P.frame_from_dataset(ds[17], seq=17)))
+    assert [m.seq for _, m in again] == [17] and core.counters.get("frames_answered_again") == 1
+    np.testing.assert_allclose(again[0][1].c2w, newest[17].c2w, atol=1e-9)
+    assert again[0][1].quality == newest[17].quality and core.ack == 19

@@ -912,9 +912,14 @@ class MonoFrontend:
         before the bootstrap and while the scale is pending."""
         if not self.initialized or self.scale_pending:
             return []
+        kfs = self._window[-n:]
+        seen_by: dict = {k: {} for k in kfs}  # keyframe -> {landmark: pixel}, in one pass over the observations
+        for o in self._obs:
+            if o[0] in seen_by:
+                seen_by[o[0]][int(o[1])] = (o[2], o[3])
         out = []
-        for k in self._window[-n:]:
-            seen = {int(o[1]): (o[2], o[3]) for o in self._obs if o[0] == k}
+        for k in kfs:
+            seen = seen_by[k]
             if k not in self._kf_pose or k not in self._kf_rgb or len(seen) < self.cfg.min_ref_points:
                 continue
             lids = np.array(sorted(seen), np.int64)

@@ -173,8 +173,8 @@ class TrackerCore(ServiceCore):
                 return []
         if f.seq <= self.last_seq and f.seq not in self.waiting:
             return self._answer_again(f)
-        if f.seq in self.waiting:
-            self.counters.inc("stale_frames")
+        if f.seq in self.waiting or f.seq in self._boot_stamps or any(h[0] == f.seq for h in self._held):
+            self.counters.inc("stale_frames")  # e.g. sent again while the bootstrap or the late anchor holds it
             return []
         self.took_frame(f.seq)
         self.counters.inc("frames_received")
