@@ -203,7 +203,9 @@ class MapperCore(ServiceCore):
         """The pose source's heartbeat. When its counter starts over (a restarted tracker or
         producer), the frames already waiting for a pose will never get one: the new process never
         saw them. They are skipped now (``orphaned_frames``) instead of after ``pose_timeout``,
-        which would hold the player's window that long."""
+        which would hold the player's window that long. With ``resent_frames`` the player sends
+        them to the new process again: they wait for its answers, and only those before its first
+        answer are skipped (it answers in order)."""
         if st.service != self.opts.pose_source:
             return []
         prev, self._source_seq = self._source_seq, st.seq

@@ -20,6 +20,11 @@ Two front ends (``TrackerServiceOptions.frontend``):
   After each keyframe's bundle adjustment, the poses it moved are published again (same
   ``seq``, ``republish_min_m`` / ``republish_min_deg``): the mapper replaces the poses of
   frames it has integrated, the recorder keeps the newest, as ``fmapping slam`` does in-process.
+  With ``state_path`` (``--state``; ``fmapping up``: OUT/tracker/state.npz) the newest keyframes
+  are saved after each keyframe; a tracker started with that file (a restart, ``fmapping up
+  --resume``) re-localises its first frames against them (:meth:`MonoFrontend.resume`) and goes
+  on in the same world frame and scale instead of bootstrapping; a frame it answered before that
+  comes again (sent to a restarted mapper) gets the same answer again.
 * ``map`` (the paper-style loop): direct alignment against keyframes whose depth is
   rendered from the mapper's field. Protocol with the mapper (``services.mapper
   --poses tracker --unposed-init yes``):
