@@ -15,6 +15,7 @@ import pytest
 pytest.importorskip("zenoh")
 
 from fmapping import launcher as L  # noqa: E402
+from fault_helpers import FAULT_MAPPER  # noqa: E402
 from service_helpers import ROOT, SMALL_MAPPER, subprocess_env  # noqa: E402
 
 
@@ -55,6 +56,22 @@ def test_supervise_restarts_crashes_with_backoff_and_a_bound(capsys):
 
 
 FAULT_FRAMES = 48  # the kill tests' scene: 160x120, enough for the mono tracker's bootstrap and late anchor
+WINDOW = FAULT_MAPPER["new_frames_per_window"]
+# The map's completion ratio moves from run to run with the timing of the updates: two undisturbed runs of
+# this configuration gave 26.2 and 27.6 % (bench/faults.py, --poses tracker), 5 % apart. Measured disturbed:
+# mapper killed (GT poses) 57.2 % = undisturbed; tracker killed 29.2 %; killed launcher + --resume 25.1 and
+# 25.3 % in two runs, 9 % below (not pinned down yet). A disturbed run must come within 15 % of undisturbed.
+COMPLETION_SPREAD = 0.15  # relative
+
+
+def _same_map(run, clean) -> str:
+    """The map scores of ``run`` and ``clean`` (one line), after checking that ``run`` completes at least
+    as much of the scene as ``clean`` less the run-to-run spread."""
+    line = (f"map completion ratio {run.completion:.1f} % vs {clean.completion:.1f} % undisturbed, accuracy "
+            f"{run.metrics['recon_sim3']['accuracy_cm']:.2f} vs {clean.metrics['recon_sim3']['accuracy_cm']:.2f} cm")
+    assert clean.completion > 5.0, "the undisturbed run made no map to compare with"
+    assert run.completion >= (1 - COMPLETION_SPREAD) * clean.completion, line
+    return line
 
 
 @pytest.fixture(scope="module")
@@ -67,9 +84,9 @@ def fault_scene(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("faults")
     scene = root / "scene"
-    generate_scene(scene, seed=2, frames=FAULT_FRAMES, size=(160, 120), max_cloud_points=2000, mesh_spacing=0.2)
+    generate_scene(scene, seed=2, frames=FAULT_FRAMES, size=(160, 120), max_cloud_points=20000, mesh_spacing=0.1)
     cfg = root / "up.yaml"
-    cfg.write_text(yaml.safe_dump({"mapper": SMALL_MAPPER, "launcher": {"timeout": 400, "threads": 1,
+    cfg.write_text(yaml.safe_dump({"mapper": FAULT_MAPPER, "launcher": {"timeout": 400, "threads": 1,
                                                                          "view": False}}))
     return scene, cfg, {}
 
@@ -111,8 +128,9 @@ def test_kill_9_of_the_mapper_loses_at_most_one_window_against_an_undisturbed_ru
     print(f"\n[supervision] mapper killed at frame {run.killed_at}: restarted once, resumed from the checkpoint "
           f"at frame {run.stats['counters']['resumed_at_seq']}, {resent} frames sent again; "
           f"{run.frames} of {clean.frames} frames mapped ({len(lost)} lost)")
-    assert len(lost) <= SMALL_MAPPER["new_frames_per_window"]
-    assert run.frames >= clean.frames - SMALL_MAPPER["new_frames_per_window"]
+    assert len(lost) <= WINDOW
+    assert run.frames >= clean.frames - WINDOW
+    print("[supervision] " + _same_map(run, clean))
 
 
 @pytest.mark.slow
@@ -136,8 +154,9 @@ def test_kill_9_of_the_tracker_relocalises_and_loses_at_most_one_window(fault_sc
           f"{tc['resumed_at']} against keyframe {tc['resume_keyframe']} ({tc['resume_points']} landmarks); "
           f"{run.frames} of {clean.frames} frames mapped ({len(lost)} lost); ATE (GT frame, no alignment) "
           f"{se3['killed']:.2f} cm vs {se3['clean']:.2f} cm undisturbed (Sim3 {run.ate_cm:.2f} vs {clean.ate_cm:.2f})")
-    assert len(lost) <= SMALL_MAPPER["new_frames_per_window"]
+    assert len(lost) <= WINDOW
     assert se3["killed"] <= 1.5 * se3["clean"]
+    print("[supervision] " + _same_map(run, clean))
 
 
 def _gone(pid: int) -> bool:
@@ -202,8 +221,9 @@ def test_fmapping_up_resume_continues_a_killed_run(fault_scene, tmp_path):
           f"{counters['play']['started_after'] + 1}, tracker re-localised at {counters['tracker']['resumed_at']} "
           f"against keyframe {counters['tracker']['resume_keyframe']}; {run.frames} of {clean.frames} frames mapped "
           f"({len(lost)} lost), record {record}; ATE (no alignment) {se3[0]:.2f} cm vs {se3[1]:.2f} cm undisturbed")
-    assert len(lost) <= SMALL_MAPPER["new_frames_per_window"]
+    assert len(lost) <= WINDOW
     assert se3[0] <= 1.5 * se3[1]
+    print("[resume] " + _same_map(run, clean))
     # record added the second part to the poses of the first: every frame the mapper has is in its files
     assert min(record.values()) >= run.frames
 
