@@ -1,5 +1,8 @@
 """The launcher supervises: a service killed with -9 while play streams is started again (bounded,
-with backoff, counted in OUT/up.json) and the run completes; the mapper resumes from its checkpoint."""
+with backoff, counted in OUT/up.json) and the run completes; the mapper resumes from its checkpoint,
+the mono tracker re-localises against its saved keyframes, play sends both the frames they missed.
+The kill tests and ``fmapping up --resume`` are measured against an undisturbed run of the same data
+(frames mapped, ATE, map completion; tests/fault_helpers.py)."""
 from __future__ import annotations
 
 import json
@@ -8,6 +11,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -420,3 +424,28 @@ def test_the_tracker_answers_a_frame_sent_again_with_the_pose_it_gave_it(room320
     assert [m.seq for _, m in again] == [17] and core.counters.get("frames_answered_again") == 1
     np.testing.assert_allclose(again[0][1].c2w, newest[17].c2w, atol=1e-9)
     assert again[0][1].quality == newest[17].quality and core.ack == 19
+
+
+def test_a_run_keeps_its_arguments_for_resume_and_a_new_run_starts_over(tmp_path, capsys):
+    """OUT/run.json holds what --resume needs (the config copied into OUT); a new run in a folder with an
+    unfinished run's checkpoint and tracker keyframes removes them, saying so."""
+    import argparse
+
+    out, cfg = tmp_path / "out", tmp_path / "up.yaml"
+    out.mkdir()
+    cfg.write_text("launcher: {threads: 1}\n")
+    args = argparse.Namespace(command="up", data="/data/room", poses="tracker", out=str(out), fps=0.0,
+                              config=str(cfg), bbox=[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]], insecure=False, resume=None)
+    L.save_run_args(args, out)
+    cfg.unlink()  # the run no longer depends on the user's file
+    (out / "checkpoint.pt").write_bytes(b"-")
+    again = L.resume_args(out)
+    assert again.resume is True and again.out == str(out) and again.data == "/data/room" and again.bbox == args.bbox
+    assert Path(again.config).read_text() == "launcher: {threads: 1}\n" and Path(again.config).parent == out / "config"
+    L.tracker_state(out).parent.mkdir()
+    L.tracker_state(out).write_bytes(b"-")
+    L.start_over(out)
+    assert not (out / "checkpoint.pt").exists() and not L.tracker_state(out).exists()
+    assert "removed the checkpoint of an earlier unfinished run" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="no checkpoint.pt"):
+        L.resume_args(out)
