@@ -449,3 +449,59 @@ def test_a_run_keeps_its_arguments_for_resume_and_a_new_run_starts_over(tmp_path
     assert "removed the checkpoint of an earlier unfinished run" in capsys.readouterr().out
     with pytest.raises(ValueError, match="no checkpoint.pt"):
         L.resume_args(out)
+
+
+def test_play_sends_a_restarted_consumer_the_frames_it_missed_and_starts_after_a_resumed_mapper(scene):
+    """io play --resend-to: when a consumer's status counter starts over, the frames after what it has
+    done go out again with their frame numbers and timestamps (a tracker: after its last acknowledgement;
+    a mapper: after the one it resumed with). --start-after mapper begins after the mapper's acknowledgement."""
+    import argparse
+
+    from fmapping import protocol as P
+    from fmapping.datasets import open_dataset
+    from services import common as C
+    from services.io import play
+
+    class Session:  # records what would go on the bus
+        def __init__(self):
+            self.puts = []
+
+        def declare_publisher(self, key, **kw):
+            return type("Pub", (), {"put": lambda _, data: self.puts.append((key, data)), "undeclare": lambda _: None})()
+
+        def declare_subscriber(self, key, cb):
+            return type("Sub", (), {"undeclare": lambda _: None})()
+
+    def player(*extra):
+        args = play.add_args(argparse.ArgumentParser()).parse_args(
+            ["--data", str(scene), "--ack-from", "", "--wait-for", "", "--no-end-stop", *extra])
+        session = Session()
+        svc = C.Service("play", args, session=session, keys=P.Keys("t"), install_signals=False)
+        return play.Player(svc, open_dataset(scene), args), session
+
+    def frames(session) -> list:
+        return [P.decode(d, P.Frame) for k, d in session.puts if k == P.Keys("t").frames]
+
+    p, session = player("--resend-to", "tracker,mapper")
+    assert p.run() == 0
+    first = {f.seq: f.timestamp for f in frames(session)}
+    assert sorted(first) == list(range(14))
+    session.puts.clear()
+    p._on_status("k", P.encode(P.Status(service="tracker", seq=40, frame_seq=9)))
+    p._on_status("k", P.encode(P.Status(service="tracker", seq=1, frame_seq=-1)))  # restarted, had done 9
+    p._on_status("k", P.encode(P.Status(service="view", seq=40, frame_seq=2)))
+    p._on_status("k", P.encode(P.Status(service="view", seq=1, frame_seq=-1)))  # not in --resend-to
+    assert p.rewind == 10
+    p._resend()
+    again = frames(session)
+    assert [f.seq for f in again] == [10, 11, 12, 13] and all(f.timestamp == first[f.seq] for f in again)
+    gt = [P.decode(d, P.Pose) for k, d in session.puts if k == P.Keys("t").poses("gt")]
+    assert [g.seq for g in gt] == [10, 11, 12, 13]  # with their GT poses, as the first time
+    p._on_status("k", P.encode(P.Status(service="mapper", seq=30, frame_seq=12)))
+    p._on_status("k", P.encode(P.Status(service="mapper", seq=2, frame_seq=11)))  # resumed at 11
+    assert p.rewind == 12 and p.floor["mapper"] == 11
+
+    p, session = player("--start-after", "mapper")
+    p.peers.update(P.Status(service="mapper", seq=3, frame_seq=8))  # a mapper resumed at frame 8
+    assert p.run() == 0
+    assert [f.seq for f in frames(session)] == [9, 10, 11, 12, 13] and p.svc.counters.get("started_after") == 8

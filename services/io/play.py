@@ -275,6 +275,9 @@ class Player:
             self._wait_unpaused()
             if self._halt():
                 break
+            if self.rewind is not None:  # a restarted consumer (also at a fixed --fps)
+                self._resend()
+                continue
             if self.reset_requested.is_set():
                 self.reset_requested.clear()
                 i, loop = 0, 0
