@@ -453,6 +453,16 @@ def resume_args(folder) -> argparse.Namespace:
     return argparse.Namespace(**{**saved, "out": str(out), "resume": True})
 
 
+def keep_logs(out: Path) -> Path:
+    """OUT/logs of the earlier part of a resumed run moved to OUT/logs.<n> (the first free n)."""
+    n = 1
+    while (out / f"logs.{n}").exists():
+        n += 1
+    if (out / "logs").is_dir():
+        os.replace(out / "logs", out / f"logs.{n}")
+    return out / f"logs.{n}"
+
+
 def start_over(out: Path) -> None:
     """A new run in OUT: what an earlier, unfinished run left to resume from is not this run's."""
     if (out / "checkpoint.pt").exists():
@@ -512,7 +522,7 @@ def run_up(args) -> int:
     started = time.time()
     if resuming:
         print(f"fmapping up: resuming the run in {out}: the mapper from its checkpoint, play from the first frame "
-              "it had not mapped", flush=True)
+              f"it had not mapped (the earlier part's logs: {keep_logs(out)})", flush=True)
     else:
         start_over(out)
         save_run_args(args, out)

@@ -234,6 +234,7 @@ def test_fmapping_up_resume_continues_a_killed_run(fault_scene, tmp_path):
     print("[resume] " + _same_map(run, clean))
     # record added the second part to the poses of the first: every frame the mapper has is in its files
     assert min(record.values()) >= run.frames
+    assert (out / "logs.1" / "mapper.log").is_file() and (out / "logs" / "mapper.log").is_file()  # both parts' logs
 
 
 def _status_of(out, name: str) -> dict:
