@@ -10,6 +10,9 @@
 #    volume of the default set-up, or an empty host folder), the synthetic demo room is generated
 #    into it (`fmapping synth`, FMAPPING_DEMO_FRAMES frames). Anything else is an error naming the
 #    folder, before the services start (not a play service exiting while the others wait).
+# 3. A new run starts over: an earlier run's mapper checkpoint and tracker keyframes in the output
+#    folder are removed (a mapper / tracker that compose restarts after a crash in this run resumes
+#    from them; prepare runs once per `docker compose up`, not on those restarts).
 #
 # Exit codes: 0 ready, 2 bad data / output folder. The paths are variables for the tests only.
 set -eu
@@ -44,6 +47,13 @@ then
          "for a folder of yours, or give another FMAPPING_OUT" >&2
     exit 2
 fi
+
+for stale in "$OUT/checkpoint.pt" "$OUT/tracker/state.npz"; do
+    if [ -e "$stale" ]; then
+        rm -f "$stale"
+        echo "prepare: starting over: removed $stale of an earlier run"
+    fi
+done
 
 if "$FMAPPING" info --data "$DATA" >/dev/null 2>&1; then
     echo "prepare: dataset found in $DATA"

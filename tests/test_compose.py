@@ -219,3 +219,33 @@ def test_prepare_refuses_a_folder_without_a_dataset_and_an_unwritable_output(tmp
         fresh.mkdir()
         r = _prepare(tmp_path, data, fresh, FMAPPING_UID="65534", FMAPPING_GID="65534")
         assert fresh.stat().st_uid == 65534 and r.returncode == 2 and "holds no dataset" in r.stderr, r.stderr
+
+
+def test_crashed_mapper_and_tracker_are_restarted_and_resume_within_the_run(compose, tmp_path):
+    """As under `fmapping up`: a crashed mapper / tracker comes back (bounded), the mapper from its
+    checkpoint in /out, the tracker re-localising against the keyframes it keeps in /out, and play
+    sends them the frames they missed; a new `docker compose up` starts over (prepare removes an
+    earlier run's checkpoint and tracker state, and runs once per up, not on those restarts)."""
+    svc = compose["services"]
+    for name in ("mapper", "tracker", "mapper-gpu", "tracker-gpu"):
+        policy = svc[name]["restart"]
+        assert policy.startswith("on-failure:") and 1 <= int(policy.split(":")[1]) <= 5, (name, policy)
+        argv = shlex.split(svc[name]["command"])
+        if name.startswith("tracker"):
+            assert argv[argv.index("--state") + 1].startswith("/out/")
+        else:
+            assert argv[argv.index("--out") + 1] == "/out" and "--resent-frames" in argv
+    play = shlex.split(svc["io-play"]["command"])
+    assert set(play[play.index("--resend-to") + 1].split(",")) == {"mapper", "tracker"}
+    assert svc["prepare"]["restart"] == "no"
+    data, out = tmp_path / "data", tmp_path / "out"
+    data.mkdir()
+    (out / "tracker").mkdir(parents=True)
+    (out / "checkpoint.pt").write_bytes(b"old")
+    (out / "tracker" / "state.npz").write_bytes(b"old")
+    (out / "map.ply").write_bytes(b"an earlier run's output")
+    r = _prepare(tmp_path, data, out, FMAPPING_DEMO_FRAMES="3")
+    assert r.returncode == 0, r.stderr
+    assert not (out / "checkpoint.pt").exists() and not (out / "tracker" / "state.npz").exists()
+    assert (out / "map.ply").read_bytes() == b"an earlier run's output"
+    assert r.stdout.count("starting over") == 2
