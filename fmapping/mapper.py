@@ -55,8 +55,8 @@ from fmapping.cancel import StopFn, check_stop
 from fmapping.device import pick_device
 from fmapping.field import FieldConfig, build_field
 from fmapping.geometry import se3_exp, se3_inverse
-from fmapping.losses import (expected_depth_l1, photometric_loss, sample_consistency_cost, sparse_depth_loss,
-                             warping_loss)
+from fmapping.losses import (distortion_loss, expected_depth_l1, photometric_loss, sample_consistency_cost,
+                             sparse_depth_loss, warping_loss)
 from fmapping.render import alpha_to_weights, composite, raw_to_alpha, render_rays, sample_deltas
 from fmapping.sampling import ray_aabb, sample_pdf, stratified
 from fmapping.sampling.sliding_window import sliding_window_sample
@@ -121,12 +121,14 @@ class MapperConfig:
     pc_radius: int = 0  # patch radius of the per-sample cost
     tv_weight: float = 0.0
     l1_weight: float = 0.0
+    distortion_weight: float = 0.0  # mip-NeRF 360 distortion loss on the colour rays (compact termination, no fog)
     use_depth: bool = False
     depth_weight: float = 0.5
     # --- sparse points: KLT tracks triangulated with the given poses (fmapping.sparse_points)
     sparse: SparsePointsConfig = dc_field(default_factory=SparsePointsConfig)
     sparse_depth_weight: float = 1.0  # weight of the sparse depth term (0: off); pulls rays onto triangulated points
     sparse_rays: int = 256  # rays per iteration through triangulated points
+    sparse_fill_weight: float = 0.0  # weight (x the points') of depth filled in between a frame's points (0: off)
     # --- per-frame affine colour (auto exposure / white balance): rendered = (1 + a) * colour + b per channel
     exposure: bool = True
     lr_exposure: float = 0.001
@@ -155,8 +157,10 @@ class MapperConfig:
             raise ValueError(f"MapperConfig.sampler must be pdf, sliding_window or stratified, got {self.sampler!r}")
         if self.bounds not in ("points", "frusta"):
             raise ValueError(f"MapperConfig.bounds must be 'points' or 'frusta', got {self.bounds!r}")
-        if self.sparse_depth_weight < 0 or self.sparse_rays < 0 or self.lr_exposure < 0 or self.exposure_reg < 0:
-            raise ValueError("MapperConfig: sparse_depth_weight, sparse_rays, lr_exposure and exposure_reg must be >= 0")
+        if min(self.sparse_depth_weight, self.sparse_rays, self.sparse_fill_weight, self.lr_exposure, self.exposure_reg,
+               self.distortion_weight) < 0:
+            raise ValueError("MapperConfig: sparse_depth_weight, sparse_rays, sparse_fill_weight, lr_exposure, exposure_reg "
+                             "and distortion_weight must be >= 0")
         self.sparse.validate()
         if self.warp_depth not in ("far", "expected"):
             raise ValueError(f"MapperConfig.warp_depth must be 'far' or 'expected', got {self.warp_depth!r}")
@@ -617,10 +621,15 @@ class Mapper:
         if self._sparse is None or self.cfg.sparse_depth_weight <= 0:
             return None
         rows = []
+        fill = self.cfg.sparse_fill_weight
         for k, i in enumerate(ids):
             uv, z, w = self._sparse.frame_depths(i)
             if len(z):
                 rows.append((np.full(len(z), k), uv, z, w))
+            if fill > 0:
+                uv, z, w = self._sparse.frame_fill(i)
+                if len(z):
+                    rows.append((np.full(len(z), k), uv, z, fill * w))
         if not rows:
             return None
         f, uv, z, w = (np.concatenate(x) for x in zip(*rows))
@@ -651,6 +660,8 @@ class Mapper:
         pred = out.rgb if expo is None else out.rgb * (1 + expo[fi, :3]) + expo[fi, 3:]
         photo = photometric_loss(pred, target, cfg.photo_loss, cfg.huber_delta, weight=okf)
         loss = photo
+        if cfg.distortion_weight > 0 and bool(ok.any()):
+            loss = loss + cfg.distortion_weight * distortion_loss(out.weights[ok], out.t[ok], tn[ok], tf[ok])
         warp = torch.zeros((), device=self.device)
         if cfg.warp_weight > 0 and v > 1:
             if cfg.warp_depth == "far":

@@ -36,6 +36,10 @@ class SparsePointsConfig:
     max_reproj_px: float = 1.5  # at 320 px image width (scaled with the width)
     half_window: int = 7  # KLT half window at 320 px width
     min_distance: int = 8  # pixels between corners at 320 px width
+    # depth filled in between a frame's points (fill_depths), pixel sizes at 320 px width
+    fill_step_px: float = 8.0  # grid step of the filled pixels
+    fill_max_edge_px: float = 40.0  # longest triangle edge used: larger ones bridge too much unknown surface
+    fill_max_ratio: float = 1.1  # largest / smallest corner depth of a triangle used (no depth edges)
 
     def validate(self) -> None:
         if self.max_corners < 1 or self.min_track < 2 or self.max_track < self.min_track:
@@ -44,6 +48,8 @@ class SparsePointsConfig:
             raise ValueError("SparsePointsConfig: need 0 < min_parallax_deg <= full_weight_parallax_deg")
         if not self.max_reproj_px > 0:
             raise ValueError("SparsePointsConfig.max_reproj_px must be > 0")
+        if not (self.fill_step_px > 0 and self.fill_max_edge_px > 0 and self.fill_max_ratio >= 1):
+            raise ValueError("SparsePointsConfig: need fill_step_px > 0, fill_max_edge_px > 0, fill_max_ratio >= 1")
 
 
 def triangulate_rays(centres: np.ndarray, dirs: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -135,6 +141,13 @@ class TrackTriangulator:
         ok = z > 1e-6
         return np.asarray(uv)[ok], z[ok], self.weights[idx][ok]
 
+    def frame_fill(self, fid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Depth filled in between frame ``fid``'s points (:func:`fill_depths`): pixels, depths, weights."""
+        uv, z, w = self.frame_depths(fid)
+        width, cfg = self.camera.width, self.cfg
+        return fill_depths(uv, z, w, width, self.camera.height, at_width(cfg.fill_step_px, width),
+                           at_width(cfg.fill_max_edge_px, width), cfg.fill_max_ratio)
+
     def points_seen_by(self, fids) -> np.ndarray:
         """(N, 3) points observed in any of the frames ``fids``."""
         idx = sorted({i for f in fids for i in self._frame_obs.get(f, ([], []))[0]})
@@ -223,6 +236,49 @@ class TrackTriangulator:
                 idx, pix = self._frame_obs.setdefault(fid, ([], []))
                 idx.append(base + j)
                 pix.append(uv)
+
+
+def fill_depths(uv: np.ndarray, z: np.ndarray, w: np.ndarray, width: int, height: int, step: float,
+                max_edge_px: float, max_ratio: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Depth between a frame's sparse points: a regular pixel grid (``step`` px) read off the image
+    Delaunay triangulation of the points ``uv`` (M, 2) with depths ``z`` (M,) and weights ``w``.
+
+    Inverse depth is interpolated linearly inside each triangle, which is exact where the three
+    points lie on one plane (1/z is affine in the pixel coordinates on a plane): walls, cabinet
+    fronts and floors, the surfaces that have no texture of their own between their corners.
+    Only small triangles (longest edge <= ``max_edge_px``) whose corners agree in depth
+    (largest / smallest <= ``max_ratio``) are used, so a triangle spanning a depth edge gives
+    nothing. Returns grid pixels (K, 2), their depths (K,) and weights (K,: the smallest corner
+    weight)."""
+    empty = np.zeros((0, 2)), np.zeros(0), np.zeros(0)
+    if len(z) < 3:
+        return empty
+    from scipy.spatial import Delaunay, QhullError
+
+    try:
+        tri = Delaunay(uv)
+    except (QhullError, ValueError):  # all points on a line, or too few distinct ones
+        return empty
+    s = tri.simplices
+    corners = uv[s]  # (T, 3, 2)
+    edges = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=-1).max(-1)
+    zc = z[s]
+    good = (edges <= max_edge_px) & (zc.max(-1) <= max_ratio * zc.min(-1))
+    if not good.any():
+        return empty
+    gx, gy = np.meshgrid(np.arange(step / 2, width, step), np.arange(step / 2, height, step))
+    grid = np.stack([gx.ravel(), gy.ravel()], -1)
+    simplex = tri.find_simplex(grid)
+    inside = simplex >= 0
+    inside[inside] = good[simplex[inside]]
+    grid, simplex = grid[inside], simplex[inside]
+    if not len(grid):
+        return empty
+    tr = tri.transform[simplex]  # barycentric coordinates: T (x - r)
+    b = np.einsum("kij,kj->ki", tr[:, :2], grid - tr[:, 2])
+    bary = np.concatenate([b, 1 - b.sum(-1, keepdims=True)], -1)
+    inv = (bary / zc[simplex]).sum(-1)
+    return grid, 1.0 / inv, w[s[simplex]].min(-1)
 
 
 def aabb_from_points(points: np.ndarray, centres: Optional[np.ndarray] = None, percentile: float = 0.5,

@@ -6,7 +6,7 @@ import torch
 from fmapping.camera import PinholeCamera
 from fmapping.geometry import make_pose
 from fmapping.losses import (
-    depth_l1_loss, expected_depth_l1, patch_offsets, photometric_loss, project_patches, sample_consistency_cost,
+    depth_l1_loss, distortion_loss, expected_depth_l1, patch_offsets, photometric_loss, project_patches, sample_consistency_cost,
     sample_frames, sample_views, warping_loss,
 )
 
@@ -222,3 +222,44 @@ def test_project_patches_pixels_depths_masks_and_patches_on_the_plane():
     want = texture(0.1 + off[:, 0], -0.05 + off[:, 1]).float()
     assert patches.shape == (2, 3, 9, 3)
     torch.testing.assert_close(patches[1, 0], want, atol=5e-3, rtol=0)
+
+
+def _distortion_reference(w, t, tn, tf):
+    """The double sum written out: sum_ij w_i w_j |s_i - s_j| + 1/3 sum_i w_i^2 delta_i per ray."""
+    vals = []
+    for r in range(w.shape[0]):
+        s = [(float(x) - float(tn[r])) / (float(tf[r]) - float(tn[r])) for x in t[r]]
+        n = len(s)
+        inter = sum(float(w[r, i]) * float(w[r, j]) * abs(s[i] - s[j]) for i in range(n) for j in range(n))
+        delta = [s[i + 1] - s[i] for i in range(n - 1)] + [1.0 - s[-1]]
+        intra = sum(float(w[r, i]) ** 2 * delta[i] for i in range(n)) / 3
+        vals.append(inter + intra)
+    return sum(vals) / len(vals)
+
+
+def test_distortion_loss_matches_the_double_sum_and_its_gradient():
+    g = torch.Generator().manual_seed(0)
+    tn = torch.rand(5, generator=g, dtype=torch.float64) * 0.5 + 0.1
+    tf = tn + 2 + torch.rand(5, generator=g, dtype=torch.float64)
+    t = tn[:, None] + torch.sort(torch.rand(5, 12, generator=g, dtype=torch.float64), -1)[0] * (tf - tn)[:, None]
+    w = torch.rand(5, 12, generator=g, dtype=torch.float64)
+    w = (w / w.sum(-1, keepdim=True) * 0.9).requires_grad_(True)
+    val = distortion_loss(w, t, tn, tf)
+    torch.testing.assert_close(val.item(), _distortion_reference(w.detach(), t, tn, tf), rtol=1e-10, atol=1e-12)
+    assert torch.autograd.gradcheck(lambda x: distortion_loss(x, t, tn, tf), (w,))
+
+
+def test_distortion_loss_prefers_one_peak_to_a_spread():
+    """The same opacity on one sample scores lower than spread over the ray (a fog / a sheet along it)."""
+    t = torch.linspace(0.2, 4.0, 32, dtype=torch.float64)[None]
+    tn, tf = torch.tensor([0.1], dtype=torch.float64), torch.tensor([4.1], dtype=torch.float64)
+    peak = torch.zeros(1, 32, dtype=torch.float64)
+    peak[0, 10] = 0.95
+    spread = torch.full((1, 32), 0.95 / 32, dtype=torch.float64)
+    two = torch.zeros(1, 32, dtype=torch.float64)
+    two[0, 5], two[0, 25] = 0.475, 0.475
+    lp, ls, l2 = (distortion_loss(w, t, tn, tf).item() for w in (peak, spread, two))
+    assert lp < ls and lp < l2
+    # two separated peaks: 2 * 0.475^2 * |s_5 - s_25| (+ the small intra terms)
+    s = (t[0] - 0.1) / 4.0
+    assert l2 > 2 * 0.475 ** 2 * float(s[25] - s[5])

@@ -10,7 +10,8 @@ from fmapping.field import FieldConfig, build_field
 from fmapping.losses import sparse_depth_loss
 from fmapping.render import composite, raw_to_alpha, sample_deltas
 from fmapping.sampling import stratified
-from fmapping.sparse_points import SparsePointsConfig, TrackTriangulator, aabb_from_points, triangulate_rays
+from fmapping.sparse_points import (SparsePointsConfig, TrackTriangulator, aabb_from_points, fill_depths,
+                                    triangulate_rays)
 from fmapping.synthetic import camera_for_size, gt_cloud, make_scene, make_trajectory, render_view, visible_mask
 
 
@@ -176,3 +177,37 @@ def test_seen_depth_box_holds_what_the_camera_saw_at_its_points_depth():
     half_w, half_h = 50.0 / 100.0 * 3.0, 40.0 / 100.0 * 3.0  # corner rays at the pixel edges, 3 m out
     np.testing.assert_allclose(box, [[-half_w, -half_h, 0.0], [1.0 + half_w, half_h, 3.0]], atol=1e-9)
     assert seen_depth_box(np.stack([a]), [np.zeros(0)], cam) is None
+
+
+def test_fill_depths_is_exact_on_a_plane_and_skips_depth_edges():
+    """Points on a tilted plane: the filled grid depths are the plane's own depths (inverse depth is
+    affine in the pixel on a plane); a second plane 2x farther on the right half: triangles that span
+    both are refused, so no filled depth lies between the two planes."""
+    cam = PinholeCamera(100.0, 100.0, 79.5, 59.5, 160, 120)
+    rng = np.random.default_rng(0)
+    uv = rng.uniform([0, 0], [160, 120], (300, 2))
+    # plane n . X = 1 in the camera frame, n = (0.1, 0.05, 0.5): depth z = 1 / (n . (x, y, 1))
+    n = np.array([0.1, 0.05, 0.5])
+
+    def plane_z(p, scale=1.0):
+        ray = np.stack([(p[:, 0] - cam.cx) / cam.fx, (p[:, 1] - cam.cy) / cam.fy, np.ones(len(p))], -1)
+        return scale / (ray @ n)
+
+    z = plane_z(uv)
+    w = rng.uniform(0.5, 1.0, len(z))
+    px, fz, fw = fill_depths(uv, z, w, 160, 120, step=4.0, max_edge_px=40.0, max_ratio=1.5)
+    assert len(fz) > 0.8 * (40 * 30)  # most of the image lies inside small triangles
+    np.testing.assert_allclose(fz, plane_z(px), rtol=1e-9)
+    assert np.all((fw >= 0.5) & (fw <= 1.0))
+    # right half twice as far: a depth edge at u = 80
+    right = uv[:, 0] > 80
+    z2 = np.where(right, 2 * z, z)
+    px, fz, _ = fill_depths(uv, z2, w, 160, 120, step=4.0, max_edge_px=40.0, max_ratio=1.5)
+    near, far = plane_z(px), 2 * plane_z(px)
+    on_near = np.isclose(fz, near, rtol=1e-9)
+    on_far = np.isclose(fz, far, rtol=1e-9)
+    assert np.all(on_near | on_far)
+    assert on_near.sum() > 100 and on_far.sum() > 100
+    # long triangles are refused: with 5 points nothing is filled at a 10 px edge limit
+    px, fz, _ = fill_depths(uv[:5], z[:5], w[:5], 160, 120, step=4.0, max_edge_px=10.0, max_ratio=1.5)
+    assert len(fz) == 0
