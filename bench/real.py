@@ -94,13 +94,20 @@ def log(msg: str) -> None:
 
 # ----------------------------------------------------------------------------- configs
 def variant_overrides(name: str) -> tuple[dict, list]:
-    """(mapper overrides applied, keys asked for that MapperConfig does not have yet) of a variant."""
+    """(mapper overrides applied, keys asked for that MapperConfig does not have yet) of a variant:
+    ``before`` | ``after``, optionally followed by ``+key=value`` mapper overrides (YAML values),
+    e.g. ``after+distortion_weight=0.01+sparse_fill_weight=0.3``."""
+    import yaml
+
     from fmapping.mapper import MapperConfig
 
-    if name == "after":
-        return {}, []
+    base, *extra = name.split("+")
+    asked = dict(BEFORE) if base == "before" else {}
+    for kv in extra:
+        k, v = kv.split("=", 1)
+        asked[k] = yaml.safe_load(v)
     have = {f.name for f in dataclasses.fields(MapperConfig)}
-    return {k: v for k, v in BEFORE.items() if k in have}, [k for k in BEFORE if k not in have]
+    return {k: v for k, v in asked.items() if k in have}, [k for k in asked if k not in have]
 
 
 def write_yaml(path: Path, data: dict) -> str:
@@ -334,7 +341,7 @@ class Bench:
             "variants": {}, "rows": {}, "skipped": {}, "table": []}
         for v in a.variants:
             applied, missing = variant_overrides(v)
-            self.res["variants"][v] = {"asked": BEFORE if v == "before" else {}, "applied": applied,
+            self.res["variants"][v] = {"asked": {**applied, **{k: None for k in missing}}, "applied": applied,
                                        "not_in_MapperConfig_yet": missing}
 
     # -- config files
@@ -644,7 +651,9 @@ def main(argv=None) -> int:
     ap.add_argument("--rows", default=None, help=f"comma list of {', '.join(ROWS)} (default: all)")
     ap.add_argument("--long", action=argparse.BooleanOptionalAction, default=None,
                     help="include the 700-frame 7scenes_long row (default: yes, no with --quick)")
-    ap.add_argument("--variants", default="before,after", help="comma list of before, after")
+    ap.add_argument("--variants", default="before,after",
+                    help="comma list of before, after, each optionally with +key=value mapper overrides "
+                         "(after+distortion_weight=0.01)")
     ap.add_argument("--seeds", type=int, nargs="+", default=None, help="synthetic seeds (default 0-4; --quick 0 1)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
     ap.add_argument("--out", default=None, help="JSON (default bench/results/real.json; --quick /tmp/real_quick.json)")
@@ -662,8 +671,9 @@ def main(argv=None) -> int:
         rows = tuple(r for r in rows if r != "7scenes_long")
     a.rows = list(rows)
     a.variants = [v.strip() for v in a.variants.split(",") if v.strip()]
-    if not a.variants or any(v not in VARIANTS for v in a.variants):
-        ap.error(f"--variants: comma list of {', '.join(VARIANTS)}")
+    if not a.variants or any(v.split("+")[0] not in VARIANTS or any("=" not in kv for kv in v.split("+")[1:])
+                             for v in a.variants):
+        ap.error(f"--variants: comma list of {', '.join(VARIANTS)}, each optionally with +key=value")
     a.seeds = a.seeds if a.seeds is not None else ([0, 1] if a.quick else [0, 1, 2, 3, 4])
     a.out = a.out or ("/tmp/real_quick.json" if a.quick else str(ROOT / "bench" / "results" / "real.json"))
     a.work = a.work or tempfile.mkdtemp(prefix="fmapping_real_")
