@@ -13,11 +13,14 @@ Conventions (the only place they are written down; every module follows them):
 All functions accept any leading batch shape ``(..., 3)`` / ``(..., 3, 3)`` /
 ``(..., 4, 4)`` and are stable at small angles (Taylor branches chosen with
 ``torch.where`` on safe inputs, so gradients stay finite at exactly zero).
+The projections onto SO(3) (:func:`nearest_rotation`, :func:`orthonormalize`) take one
+matrix, numpy or torch.
 """
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -188,6 +191,36 @@ def matrix_to_quat(rot: Tensor) -> Tensor:
 def rotation_angle(rot: Tensor) -> Tensor:
     """Angle in radians of a rotation (..., 3, 3)."""
     return torch.linalg.norm(so3_log(rot), dim=-1)
+
+
+def nearest_rotation(m):
+    """The rotation nearest to the 3x3 matrix ``m`` (Frobenius norm): its polar factor by SVD,
+    with the sign of the last singular direction flipped when that one is a reflection.
+    numpy array in, numpy array out; torch tensor in, tensor out (same dtype and device)."""
+    if isinstance(m, Tensor):
+        u, _, vt = torch.linalg.svd(m)
+        r = u @ vt
+        if torch.linalg.det(r) < 0:
+            u[:, -1] *= -1
+            r = u @ vt
+        return r
+    u, _, vt = np.linalg.svd(m)
+    r = u @ vt
+    if np.linalg.det(r) < 0:
+        u[:, -1] *= -1
+        r = u @ vt
+    return r
+
+
+def orthonormalize(t) -> np.ndarray:
+    """A copy of the 4x4 pose ``t`` (float64 numpy) with its rotation block projected onto SO(3)
+    (:func:`nearest_rotation`) and last row ``0 0 0 1``. Chained products of poses let round-off
+    grow geometrically, and the protocol's rotation check refuses float poses straight out of an
+    optimiser."""
+    out = np.array(t, np.float64)
+    out[:3, :3] = nearest_rotation(out[:3, :3])
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
 
 
 def as_tensor_pose(c2w, dtype=torch.float32, device=None) -> Tensor:

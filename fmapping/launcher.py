@@ -167,7 +167,7 @@ def add_run_info(out: Path, info: dict, since: float) -> bool:
     """Merge ``info`` into OUT/stats.json when the mapper wrote it in this run (modified at or after
     ``since``, a ``time.time()``; a file left by an earlier run in OUT is not touched). False when
     there is none."""
-    from fmapping.pipeline import json_default
+    from fmapping.fileio import write_json
 
     path = out / "stats.json"
     try:
@@ -179,9 +179,7 @@ def add_run_info(out: Path, info: dict, since: float) -> bool:
     if not isinstance(stats, dict):
         return False
     stats.update(info)
-    tmp = path.with_name(".stats.json.up.tmp")
-    tmp.write_text(json.dumps(stats, indent=1, default=json_default))
-    os.replace(tmp, path)
+    write_json(path, stats)
     return True
 
 
@@ -250,7 +248,7 @@ def run_demo(args) -> int:
     the multi-process system on it (``fmapping up``, poses from the RGB-only tracker unless
     ``args.poses`` says ``gt``, playback paced by the consumers) and print the trajectory and
     reconstruction metrics (``args.out/demo.json``)."""
-    from fmapping.pipeline import json_default
+    from fmapping.fileio import json_default
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -54,7 +54,7 @@ from fmapping.camera import PinholeCamera
 from fmapping.cancel import StopFn, check_stop
 from fmapping.device import pick_device
 from fmapping.field import FieldConfig, build_field
-from fmapping.geometry import se3_exp, se3_inverse
+from fmapping.geometry import nearest_rotation, se3_exp, se3_inverse
 from fmapping.losses import (distortion_loss, expected_depth_l1, photometric_loss, sample_consistency_cost,
                              sparse_depth_loss, warping_loss)
 from fmapping.render import alpha_to_weights, composite, raw_to_alpha, render_rays, sample_deltas
@@ -1052,9 +1052,8 @@ def _checked_pose(c2w, what: str) -> Tensor:
 
 
 def _orthonormalize(p: Tensor) -> Tensor:
-    u, _, vt = torch.linalg.svd(p[:3, :3])
     out = p.clone()
-    out[:3, :3] = u @ vt
+    out[:3, :3] = nearest_rotation(p[:3, :3])
     return out
 
 

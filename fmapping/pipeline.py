@@ -31,6 +31,7 @@ import numpy as np
 
 from fmapping.cancel import Cancelled, StopFn
 from fmapping.config import load_config, to_dict
+from fmapping.fileio import json_default
 from fmapping.mapper import Mapper, MapperConfig, aabb_from_depth, aabb_from_poses
 
 log = logging.getLogger("fmapping.pipeline")
@@ -201,17 +202,6 @@ def write_stats(out: Path, stats: dict, summary: dict) -> dict:
     stats["summary"] = summary
     (out / "stats.json").write_text(json.dumps(stats, indent=2, default=json_default))
     return stats
-
-
-def json_default(o):
-    """``json.dumps`` fallback: numpy scalars and arrays, paths, anything else as ``str``."""
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    return str(o)
 
 
 # ----------------------------------------------------------------------------- the mapping job

@@ -15,6 +15,8 @@ from typing import Optional
 import numpy as np
 import plyfile
 
+from fmapping.fileio import atomic_open
+
 
 @dataclass
 class PlyData:
@@ -44,8 +46,7 @@ def write_ply(path, points, colors=None, faces=None, binary: bool = True) -> Pat
         header += [f"element face {len(tris)}", "property list uchar int vertex_indices"]
     header.append("end_header")
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+    with atomic_open(path) as f:
         f.write(("\n".join(header) + "\n").encode("ascii"))
         if binary:
             vdt = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
@@ -70,7 +71,6 @@ def write_ply(path, points, colors=None, faces=None, binary: bool = True) -> Pat
             if tris is not None:
                 for t in tris:
                     f.write(f"3 {t[0]} {t[1]} {t[2]}\n".encode())
-    tmp.replace(path)
     return path
 
 

@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING, Any, Callable, Iterable, Optional, Sequence
 import numpy as np
 from fmapping.cli import DefaultsHelp
 from fmapping.config import read_yaml_mapping
+from fmapping.fileio import write_json
 
 from fmapping import protocol as P
 
@@ -299,16 +300,11 @@ class Counters:
 # ---------------------------------------------------------------------------- service cores (no zenoh)
 def rigid_pose(m: np.ndarray) -> np.ndarray:
     """``m`` (4, 4) with its rotation block projected onto SO(3) (SVD) and last row [0, 0, 0, 1]:
-    float poses out of an optimiser must pass the protocol's rotation check before publishing."""
-    m = np.array(m, np.float64)
-    u, _, vt = np.linalg.svd(m[:3, :3])
-    r = u @ vt
-    if np.linalg.det(r) < 0:
-        u[:, -1] *= -1
-        r = u @ vt
-    m[:3, :3] = r
-    m[3] = [0, 0, 0, 1]
-    return m
+    float poses out of an optimiser must pass the protocol's rotation check before publishing.
+    :func:`fmapping.geometry.orthonormalize` (imported here, not above: it brings torch)."""
+    from fmapping.geometry import orthonormalize
+
+    return orthonormalize(m)
 
 
 def usable_camera(cam: Any, undistorted: bool = False) -> dict:
@@ -661,11 +657,10 @@ def status_to_dict(st: P.Status) -> dict:
 
 
 def write_json_atomic(path, data: dict) -> None:
+    """A status file: ``data`` as sorted JSON (anything else as ``str``), written atomically."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True, default=str))
-    os.replace(tmp, path)
+    write_json(path, data, sort_keys=True, default=str)
 
 
 class Service:

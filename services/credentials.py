@@ -28,6 +28,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
+from fmapping.fileio import atomic_write_text
+
 # What each role may do, as key expressions under fmapping/<ns>/. Every role may also publish
 # its own status (status/<role>) and subscribe to control and status/* (COMMON_SUB).
 #   put:   publish        sub: subscribe to        query: ask        serve: answer (queryable + reply)
@@ -131,16 +133,7 @@ def client_config(endpoint: str, user: str, password: str, connect_timeout_ms: i
 
 def write_private(path: Path, text: str) -> Path:
     """Write ``text`` to ``path`` readable by the owner only (0600 from creation, then renamed)."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    try:
-        os.fchmod(fd, 0o600)  # O_CREAT's mode does not apply to a file that already existed
-        os.write(fd, text.encode())
-    finally:
-        os.close(fd)
-    os.replace(tmp, path)
-    return path
+    return atomic_write_text(path, text, mode=0o600)
 
 
 def private_folder(folder: Path) -> Path:

@@ -86,3 +86,36 @@ def test_as_tensor_pose_rejects_nan():
     bad[0, 3] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         g.as_tensor_pose(bad)
+
+
+def test_nearest_rotation_matches_kabsch_on_random_matrices_numpy_and_torch():
+    """The nearest rotation to A maximises trace(R^T A): the Kabsch rotation taking the basis
+    vectors onto A's columns (scipy's align_vectors, an independent implementation). Reflections
+    (det A < 0) included."""
+    rng = np.random.default_rng(0)
+    signs = set()
+    for _ in range(200):
+        a = rng.normal(size=(3, 3)) * 10 ** rng.uniform(-2, 2)
+        signs.add(bool(np.linalg.det(a) > 0))
+        ref = Rotation.align_vectors(a.T, np.eye(3))[0].as_matrix()
+        r = g.nearest_rotation(a)
+        np.testing.assert_allclose(r, ref, atol=1e-9)
+        np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(r) > 0
+        rt = g.nearest_rotation(torch.from_numpy(a))
+        assert isinstance(rt, torch.Tensor) and rt.dtype == torch.float64
+        torch.testing.assert_close(rt, torch.from_numpy(ref), atol=1e-9, rtol=0)
+    assert signs == {True, False}
+
+
+def test_orthonormalize_pose_keeps_translation_fixes_last_row_and_copies():
+    t = np.eye(4)
+    t[:3, :3] = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix() * 1.01
+    t[:3, 3] = (1.0, 2.0, 3.0)
+    t[3] = (1e-9, 0.0, 0.0, 1.0)
+    keep = t.copy()
+    out = g.orthonormalize(t.astype(np.float32))
+    assert out.dtype == np.float64 and np.array_equal(t, keep)
+    np.testing.assert_allclose(out[:3, :3], Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix(), atol=1e-6)
+    assert out[:3, 3].tolist() == [1.0, 2.0, 3.0] and out[3].tolist() == [0.0, 0.0, 0.0, 1.0]
+    np.testing.assert_allclose(g.orthonormalize(out), out, atol=1e-15)  # a rotation stays put

@@ -1325,8 +1325,7 @@ def test_a_first_frame_the_services_cannot_use_is_rejected_not_adopted(dataset):
 def test_min_field_elements_is_a_lower_bound_for_every_field_kind():
     """The tracker refuses a snapshot whose config needs more parameters than the snapshot carries
     (before building anything); for real fields of every kind the bound holds and is not loose."""
-    from fmapping.field import FieldConfig, build_field
-    from services.tracker import min_field_elements
+    from fmapping.field import FieldConfig, build_field, min_field_elements
 
     aabb = np.array([[-1.0, -1, -1], [1, 1, 1]])
     for kw in ({"kind": "cp", "resolution": 12, "density_components": 4, "appearance_components": 4},

@@ -15,7 +15,8 @@ from typing import Sequence
 import numpy as np
 
 from fmapping.camera import PinholeCamera
-from fmapping.tracking.direct import exp_se3, inv_pose, orthonormalize
+from fmapping.geometry import orthonormalize
+from fmapping.tracking.direct import exp_se3, inv_pose
 
 
 @dataclass

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from fmapping.camera import PinholeCamera
-from fmapping.geometry import rotation_angle
+from fmapping.geometry import orthonormalize, rotation_angle
 
 
 # ----------------------------------------------------------------------------- small SE(3) helpers (numpy front-ends)
@@ -54,20 +54,6 @@ def exp_se3(xi: np.ndarray) -> np.ndarray:
     out = np.eye(4)
     out[:3, :3] += a * k + b * k2
     out[:3, 3] = (np.eye(3) + b * k + c * k2) @ rho
-    return out
-
-
-def orthonormalize(t: np.ndarray) -> np.ndarray:
-    """Project the rotation block of a 4x4 pose onto SO(3) (SVD). Chained products of poses
-    (constant-velocity prediction, keyframe composition) otherwise let round-off grow
-    geometrically, since :func:`inv_pose` assumes an exact rotation."""
-    out = np.array(t, np.float64)
-    u, _, vt = np.linalg.svd(out[:3, :3])
-    r = u @ vt
-    if np.linalg.det(r) < 0:
-        r = u @ np.diag([1.0, 1.0, -1.0]) @ vt
-    out[:3, :3] = r
-    out[3] = (0.0, 0.0, 0.0, 1.0)
     return out
 
 

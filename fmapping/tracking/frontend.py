@@ -27,9 +27,10 @@ from typing import Optional
 import numpy as np
 
 from fmapping.camera import PinholeCamera
+from fmapping.geometry import orthonormalize
 from fmapping.tracking.direct import (
     AlignConfig, AlignResult, DepthSource, Reference, align, build_pyramid, image_valid_mask, inv_pose, make_reference,
-    orthonormalize, pose_distance, reference_from_points, scale_about, to_gray,
+    pose_distance, reference_from_points, scale_about, to_gray,
 )
 
 

@@ -53,8 +53,9 @@ from typing import Callable, Optional
 import numpy as np
 
 from fmapping.camera import PinholeCamera
+from fmapping.geometry import orthonormalize
 from fmapping.tracking.ba import bundle_adjust
-from fmapping.tracking.direct import inv_pose, orthonormalize, pose_distance, scale_about, select_pixels, to_gray
+from fmapping.tracking.direct import inv_pose, pose_distance, scale_about, select_pixels, to_gray
 from fmapping.tracking.features import (
     REFERENCE_WIDTH, KltConfig, at_width, detect_corners, klt_track, pnp_ransac, refine_pnp, to_u8, triangulate,
     two_view_init, two_view_known_baseline,

@@ -16,8 +16,8 @@ from typing import Optional
 import numpy as np
 import torch
 
-from fmapping.geometry import se3_exp
-from fmapping.tracking.direct import orthonormalize, select_pixels, to_gray
+from fmapping.geometry import orthonormalize, se3_exp
+from fmapping.tracking.direct import select_pixels, to_gray
 from fmapping.tracking.mapview import MapView
 
 

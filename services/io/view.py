@@ -107,8 +107,7 @@ def field_of_snapshot(s: P.FieldSnapshot):
     """``(field, RenderSettings)`` rebuilt from a ``FieldSnapshot`` on the CPU, or ValueError /
     TypeError naming what does not fit. The size the config implies is checked against the
     arrays carried before building: a forged config must not make the view allocate gigabytes."""
-    from fmapping.field import FieldConfig, field_from_snapshot
-    from services.tracker import min_field_elements
+    from fmapping.field import FieldConfig, field_from_snapshot, min_field_elements
 
     fdict = s.config.get("field") if isinstance(s.config, dict) else None
     if not isinstance(fdict, dict):

@@ -31,9 +31,7 @@ from __future__ import annotations
 
 import bisect
 import dataclasses
-import json
 import logging
-import os
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -43,6 +41,7 @@ from typing import Any, Optional
 import numpy as np
 
 from fmapping import protocol as P
+from fmapping.fileio import atomic_open, write_json
 from services.common import ServiceCore, rigid_pose
 
 log = logging.getLogger("fmapping.mapper")
@@ -500,9 +499,7 @@ class MapperCore(ServiceCore):
                  "resumed_from": self.resumed_from}
         if self.mapper is not None:
             stats["mapper"] = self.mapper.stats()
-        tmp = out / ".stats.json.tmp"
-        tmp.write_text(json.dumps(stats, indent=1, default=_json_default))
-        os.replace(tmp, out / "stats.json")
+        write_json(out / "stats.json", stats)
         return files
 
     # ------------------------------------------------------------ checkpoints
@@ -522,20 +519,8 @@ class MapperCore(ServiceCore):
                         "version": int(self.version), "windows": int(self.windows),
                         "camera": dict(self.camera_dict), "pose_source": self.opts.pose_source},
         }
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        with open(tmp, "wb") as fh:
+        with atomic_open(path, fsync=True, fsync_folder=True) as fh:
             torch.save(state, fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-        try:  # make the rename itself durable
-            dfd = os.open(path.parent, os.O_RDONLY)
-            try:
-                os.fsync(dfd)
-            finally:
-                os.close(dfd)
-        except OSError:
-            pass
         self.counters.inc("checkpoints")
         self.counters.set("checkpoint_ms", round((time.perf_counter() - t0) * 1e3, 1))
         return path
@@ -645,16 +630,6 @@ def _bounded(pts: np.ndarray, cols: np.ndarray, max_points: int, seed: int) -> t
         idx = np.sort(np.random.default_rng(seed).choice(len(pts), limit, replace=False))
         pts, cols = pts[idx], cols[idx]
     return np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(cols.reshape(-1, 3), np.uint8)
-
-
-def _json_default(o):
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (np.floating,)):
-        return float(o)
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)
 
 
 def load_mapper_config(path=None, overrides: Optional[dict] = None):

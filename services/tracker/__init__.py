@@ -59,6 +59,7 @@ from typing import Any, NamedTuple, Optional
 import numpy as np
 
 from fmapping import protocol as P
+from fmapping.fileio import atomic_open
 from services.common import ServiceCore, rigid_pose, snapshot_problem, usable_camera
 
 log = logging.getLogger("fmapping.tracker")
@@ -222,7 +223,7 @@ class TrackerCore(ServiceCore):
         """(field, render config, camera dict or None) of a snapshot, or ValueError / TypeError / KeyError
         naming what does not fit: the field config, its size against the arrays carried, the render
         settings, the camera (which must be the frames' camera once that is known)."""
-        from fmapping.field import FieldConfig, field_from_snapshot
+        from fmapping.field import FieldConfig, field_from_snapshot, min_field_elements
 
         fdict = s.config.get("field", {})
         if not isinstance(fdict, dict):
@@ -695,17 +696,12 @@ RESUME_KEYS = {"index": 0, "gray": 2, "c2w": 2, "world": 2, "uv": 2, "prev_index
 def save_resume_state(path, states: list) -> None:
     """``states`` (:meth:`MonoFrontend.keyframe_states`) as one .npz (``k<i>_<key>``), written
     atomically (temp file, fsync, rename)."""
-    import os
     from pathlib import Path
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as fh:
+    with atomic_open(path, fsync=True) as fh:
         np.savez(fh, **{f"k{i}_{k}": np.asarray(st[k]) for i, st in enumerate(states) for k in RESUME_KEYS})
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 def _resume_entry(z, i: int) -> dict:
@@ -737,24 +733,6 @@ def load_resume_state(path) -> Optional[list]:
         log.warning("ignoring the tracker state %s: %s", path, e)
         return None
     return states
-
-
-def min_field_elements(cfg) -> int:
-    """A lower bound on the number of parameters of the field ``cfg`` describes (the dominant
-    tensors of each kind, see ``fmapping.field``), computed without building it."""
-    kind = cfg.kind
-    if kind == "cp":
-        return 3 * (cfg.density_components + cfg.appearance_components) * cfg.resolution \
-            + cfg.app_features * cfg.hidden
-    if kind == "vm":
-        return 3 * (cfg.vm_density_components + cfg.vm_appearance_components) * cfg.resolution * cfg.resolution \
-            + cfg.app_features * cfg.hidden
-    if kind == "grid":
-        return (1 + cfg.grid_features) * cfg.grid_resolution ** 3 + cfg.grid_features * cfg.hidden
-    if kind == "mlp":
-        d_in = 3 * (1 + 2 * cfg.pe_freqs)
-        return d_in * cfg.mlp_width + max(0, cfg.mlp_layers - 1) * cfg.mlp_width ** 2
-    raise ValueError(f"unknown field kind {kind!r}")
 
 
 def load_tracker_config(path=None):
