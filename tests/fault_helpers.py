@@ -19,16 +19,11 @@ from typing import Optional
 from service_helpers import ROOT, subprocess_env
 
 
-# A mapper that maps the kill tests' 160x120 room within a minute on one thread (the same as
-# bench/faults.py's BENCH_MAPPER: an undisturbed 48-frame run there, 32 s, completion ratio 26-28 %
+# The mapper of the kill tests is bench/faults.py's (one definition): it maps the 160x120 room
+# within a minute on one thread (an undisturbed 48-frame run there, 32 s, completion ratio 26-28 %
 # after Sim3). The tests' SMALL_MAPPER leaves no map to compare.
-FAULT_MAPPER = {
-    "init_frames": 6, "init_rounds": [[0, 32], [3, 32]], "init_iters_per_round": 100, "window_size": 8,
-    "n_global_keyframes": 3, "new_frames_per_window": 3, "iters_per_window": 10, "keyframe_every": 3,
-    "rays_per_iter": 1024, "n_coarse": 16, "n_fine": 8, "warp_views": 2, "pc_rays": 128, "sparse_rays": 64,
-    "final_global_iters": 10, "device": "cpu", "seed": 0,
-    "field": {"resolution": 32, "density_components": 8, "appearance_components": 8},
-}
+sys.path.insert(0, str(ROOT / "bench"))
+from faults import BENCH_MAPPER as FAULT_MAPPER  # noqa: E402
 
 
 @dataclass
