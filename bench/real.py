@@ -314,7 +314,10 @@ def synth_scene(base: Path, seed: int, frames: int, size: tuple[int, int], varie
     Returns (folder, the variety actually generated)."""
     from fmapping import synthetic
 
-    src = hashlib.sha1(Path(synthetic.__file__).read_bytes()).hexdigest()[:8]
+    sha = hashlib.sha1()
+    for f in sorted(Path(synthetic.__file__).parent.glob("*.py")):  # every module of the generator package
+        sha.update(f.read_bytes())
+    src = sha.hexdigest()[:8]
     has_variety = "variety" in inspect.signature(synthetic.generate_scene).parameters
     used = variety if has_variety else "default"
     d = base / f"s{seed}_f{frames}_{size[0]}x{size[1]}_{used}_{src}"
