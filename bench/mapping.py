@@ -7,7 +7,7 @@
     python bench/mapping.py --real-data     # TUM fr1_rpy and NeRF lego from ../shared/data
 
 Each run streams a synthetic scene (``fmapping.synthetic.generate_scene``, RGB only, GT
-poses) through :class:`fmapping.mapper.Mapper`, exports the point cloud like
+poses) through :class:`fmapping.mapping.Mapper`, exports the point cloud like
 ``fmapping map`` (every 3rd frame, consistency-filtered) and scores it against the
 scene's ``gt_visible_cloud.ply``. Variants (config overrides of the CP default):
 
@@ -68,7 +68,7 @@ def run_one(data: Path, overrides: dict, threads: int, export_every: int = 3, ke
     from fmapping.config import merge
     from fmapping.datasets import open_dataset
     from fmapping.export import export_point_cloud
-    from fmapping.mapper import Mapper, MapperConfig
+    from fmapping.mapping import Mapper, MapperConfig
     from fmapping.metrics import recon_metrics
     from fmapping.pipeline import _heldout_psnr, scene_aabb
     from fmapping.ply import read_ply
@@ -137,7 +137,7 @@ def speed(data: Path, frames: int, rounds: int, thread_counts: list[int]) -> dic
     import torch
 
     from fmapping.datasets import open_dataset
-    from fmapping.mapper import Mapper, MapperConfig
+    from fmapping.mapping import Mapper, MapperConfig
     from fmapping.config import merge
     from fmapping.pipeline import scene_aabb
 
@@ -322,7 +322,7 @@ def run_real(threads: int, out_dir: Path) -> dict:
 
     from fmapping.config import merge
     from fmapping.datasets import open_dataset
-    from fmapping.mapper import Mapper, MapperConfig
+    from fmapping.mapping import Mapper, MapperConfig
     from fmapping.metrics import psnr
     from fmapping.pipeline import scene_aabb
 
@@ -381,7 +381,7 @@ def run_lego(lego_dir: Path, png: Optional[Path], overrides: Optional[dict] = No
 
     from fmapping.config import merge
     from fmapping.datasets import open_dataset
-    from fmapping.mapper import Mapper, MapperConfig
+    from fmapping.mapping import Mapper, MapperConfig
     from fmapping.metrics import psnr
 
     ds = open_dataset(lego_dir, background=(0, 0, 0), max_frames=max_views)

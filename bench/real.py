@@ -99,7 +99,7 @@ def variant_overrides(name: str) -> tuple[dict, list]:
     e.g. ``after+distortion_weight=0.01+sparse_fill_weight=0.3``."""
     import yaml
 
-    from fmapping.mapper import MapperConfig
+    from fmapping.mapping import MapperConfig
 
     base, *extra = name.split("+")
     asked = dict(BEFORE) if base == "before" else {}

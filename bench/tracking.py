@@ -359,7 +359,7 @@ def run_kiss(frames, camera) -> dict:
 
 def build_map(frames, camera, iters: int):
     """A map of the benchmark frames from GT poses + depth (what the trackers are compared against)."""
-    from fmapping.mapper import Mapper, MapperConfig
+    from fmapping.mapping import Mapper, MapperConfig
 
     cfg = MapperConfig(use_depth=True, optimize_init_poses=False, init_frames=min(15, len(frames)),
                        final_global_iters=iters, device="cpu")

@@ -239,7 +239,7 @@ def default_config(which: str):
     """The default config ``fmapping <which> --config FILE`` starts from: a dataclass, or for ``up``
     the dict of its sections."""
     if which == "map":
-        from fmapping.mapper import MapperConfig
+        from fmapping.mapping import MapperConfig
 
         return MapperConfig()
     if which == "slam":

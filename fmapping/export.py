@@ -214,7 +214,7 @@ def render_view(field, camera: PinholeCamera, c2w, near: float, far: float, n_sa
     """Render one view for export: numpy ``rgb`` (H, W, 3) in [0, 1], ``depth`` (H, W) =
     ``depth / acc`` (camera z of the expected surface, 0 where acc < 1e-6) and ``acc``.
 
-    Same samples as :meth:`fmapping.mapper.Mapper.render` / :func:`fmapping.render.render_image`:
+    Same samples as :meth:`fmapping.mapping.Mapper.render` / :func:`fmapping.render.render_image`:
     rays clipped to ``[near, far]`` and the box ``aabb`` (default the field's),
     ``n_samples`` stratified bin centres, then ``n_importance`` deterministic inverse-CDF
     samples, black background. Cheaper: every sample's density is evaluated once (the
@@ -350,7 +350,7 @@ def export_point_cloud(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Coloured point cloud of the map seen from ``poses``.
 
-    ``source``: a :class:`fmapping.mapper.Mapper` (its renderer is used) or a field.
+    ``source``: a :class:`fmapping.mapping.Mapper` (its renderer is used) or a field.
     ``poses``: dict id -> c2w or a list of c2w; ``images``: optional dict/list of the
     input RGB (uint8) at those poses, same keys/order, used for the point colour and
     the photo-consistency test. Per view, pixels on a grid of step ``stride`` are kept

@@ -1,4 +1,4 @@
-"""Atomic file writes and JSON encoding.
+"""Atomic file writes, JSON encoding, and dataclass trees as plain python (lists, dicts).
 
 A reader of ``path`` sees either the old file or the whole new one, never a torn write: the
 bytes go to a temp file ``.<name>.<pid>.tmp`` in the same folder, which is then renamed onto
@@ -92,3 +92,12 @@ def write_json(path, obj: Any, *, indent: int = 1, sort_keys: bool = False,
                default: Callable[[Any], Any] = json_default, **kw) -> Path:
     """``obj`` as JSON in ``path``, atomically (keywords: :func:`atomic_open`); returns ``path``."""
     return atomic_write_text(path, json.dumps(obj, indent=indent, sort_keys=sort_keys, default=default), **kw)
+
+
+def plain_tree(x):
+    """Dataclass-asdict output -> plain python (tuples to lists) for weights_only loading."""
+    if isinstance(x, dict):
+        return {k: plain_tree(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [plain_tree(v) for v in x]
+    return x

@@ -96,7 +96,7 @@ class LauncherOptions:
 
 
 def _mapper_defaults():
-    from fmapping.mapper import MapperConfig
+    from fmapping.mapping import MapperConfig
 
     return MapperConfig()
 
@@ -112,7 +112,7 @@ class UpConfig:
     """Every key an ``fmapping up`` config may set, by section (``fmapping config dump up`` prints
     the defaults; :func:`split_config` reads such a file). The sections are built on first use so
     that importing the launcher does not import torch."""
-    mapper: Any = field(default_factory=_mapper_defaults)  # fmapping.mapper.MapperConfig
+    mapper: Any = field(default_factory=_mapper_defaults)  # fmapping.mapping.MapperConfig
     tracker: Any = field(default_factory=_tracker_defaults)  # fmapping.tracking.frontend.TrackerConfig
     launcher: LauncherOptions = field(default_factory=LauncherOptions)
 

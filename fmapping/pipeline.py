@@ -1,7 +1,7 @@
 """The mapping job behind ``fmapping map``.
 
 ``run_map(args)`` opens a dataset, streams its frames with known poses (ground truth
-or a TUM trajectory file) into a :class:`fmapping.mapper.Mapper`, exports the map and
+or a TUM trajectory file) into a :class:`fmapping.mapping.Mapper`, exports the map and
 writes into ``args.out``:
 
 * ``map.ply``    coloured point cloud (:func:`fmapping.export.export_point_cloud`),
@@ -32,7 +32,7 @@ import numpy as np
 from fmapping.cancel import Cancelled, StopFn
 from fmapping.config import load_config, to_dict
 from fmapping.fileio import json_default
-from fmapping.mapper import Mapper, MapperConfig, aabb_from_depth, aabb_from_poses
+from fmapping.mapping import Mapper, MapperConfig, aabb_from_depth, aabb_from_poses
 
 log = logging.getLogger("fmapping.pipeline")
 

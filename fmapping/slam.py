@@ -67,7 +67,7 @@ import numpy as np
 
 from fmapping.cancel import Cancelled, StopFn
 from fmapping.config import load_config, to_dict
-from fmapping.mapper import Mapper, MapperConfig
+from fmapping.mapping import Mapper, MapperConfig
 from fmapping.pipeline import MESH_RESOLUTION, open_job_dataset, recon_stats, write_map_outputs, write_stats
 from fmapping.tracking.direct import scale_about
 from fmapping.tracking.frontend import DirectTracker, TrackerConfig

@@ -54,7 +54,7 @@ SMALL_MAPPER = {
 def small_cfg(**over):
     """MapperConfig of SMALL_MAPPER with top-level ``over`` rides."""
     from fmapping.config import merge
-    from fmapping.mapper import MapperConfig
+    from fmapping.mapping import MapperConfig
 
     return merge(MapperConfig(), dict(SMALL_MAPPER, **over))
 

@@ -77,7 +77,7 @@ def test_config_dump_loads_back_unchanged(which, tmp_path, capsys):
 def test_config_dump_up_loads_back_unchanged(tmp_path, capsys):
     from fmapping.config import load_config
     from fmapping.launcher import LauncherOptions, UpConfig, split_config
-    from fmapping.mapper import MapperConfig
+    from fmapping.mapping import MapperConfig
     from fmapping.tracking.frontend import TrackerConfig
 
     path = tmp_path / "up.yaml"

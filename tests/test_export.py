@@ -230,7 +230,7 @@ def test_fast_export_matches_the_reference_export():
 
 
 def test_fast_export_of_a_mapper_matches_its_renderer():
-    from fmapping.mapper import Mapper, MapperConfig
+    from fmapping.mapping import Mapper, MapperConfig
 
     cfg = MapperConfig()
     cfg.field.resolution = 32

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fmapping.fileio import atomic_open, atomic_write_text, json_default, temp_path, write_json
+from fmapping.fileio import atomic_open, atomic_write_text, json_default, plain_tree, temp_path, write_json
 
 
 def test_a_failed_write_leaves_the_old_file_and_its_temp_file(tmp_path):
@@ -36,3 +36,8 @@ def test_write_json_and_json_default(tmp_path):
     assert json.loads(path.read_text()) == {"a": 3, "arr": [0, 1], "b": 0.5, "o": str(object), "p": "x/y"}
     assert path.read_text() == json.dumps(obj, indent=1, sort_keys=True, default=json_default)
     assert json.loads(write_json(path, {"n": np.int64(3)}, default=str).read_text()) == {"n": "3"}
+
+
+def test_plain_tree_turns_tuples_into_lists_at_every_depth():
+    tree = {"rounds": ((0, 32), (3, 64)), "field": {"size": (1, 2)}, "name": "x", "n": 3}
+    assert plain_tree(tree) == {"rounds": [[0, 32], [3, 64]], "field": {"size": [1, 2]}, "name": "x", "n": 3}

@@ -7,7 +7,7 @@ import torch
 
 from fmapping.cancel import Cancelled
 from fmapping.field import FieldConfig
-from fmapping.mapper import Mapper, MapperConfig, aabb_from_poses
+from fmapping.mapping import Mapper, MapperConfig, aabb_from_poses
 from fmapping.metrics import psnr, recon_metrics
 from fmapping.synthetic import camera_for_size, gt_cloud, make_scene, make_trajectory, render_view, visible_mask
 

@@ -313,7 +313,7 @@ def test_a_stop_during_the_closing_stage_still_writes_every_frame(job, scene, tm
 
     import fmapping.pipeline as pipeline
     import fmapping.slam as slam
-    from fmapping.mapper import Mapper
+    from fmapping.mapping import Mapper
 
     monkeypatch.setattr(pipeline, "_heldout_psnr", lambda *a, **k: 12.5)
     seen = _fake_exporters(monkeypatch, (np.zeros((1, 3)), np.zeros((1, 3), np.uint8)),

@@ -98,7 +98,7 @@ class MapperCore(ServiceCore):
 
     def __init__(self, cfg, opts: Optional[MapperServiceOptions] = None, counters=None, device=None,
                  on_bad_input=None, clock=time.monotonic, should_stop=None):
-        from fmapping.mapper import MapperConfig
+        from fmapping.mapping import MapperConfig
 
         super().__init__(counters, on_bad_input)
         self.clock = clock  # for the pose timeout (injectable in tests)
@@ -261,7 +261,7 @@ class MapperCore(ServiceCore):
     def _ensure_mapper(self) -> None:
         if self.mapper is None:
             from fmapping.camera import PinholeCamera
-            from fmapping.mapper import Mapper
+            from fmapping.mapping import Mapper
 
             self.mapper = Mapper(self.cfg, PinholeCamera.from_dict(self.camera_dict), device=self.device,
                                  should_stop=self.should_stop)
@@ -419,7 +419,7 @@ class MapperCore(ServiceCore):
             return None
         if bump:
             self.version += 1
-        from fmapping.mapper import plain_tree
+        from fmapping.fileio import plain_tree
 
         arrays = {k: np.ascontiguousarray(v) for k, v in m.field.snapshot().items()}
         cfg = self.cfg
@@ -530,7 +530,7 @@ class MapperCore(ServiceCore):
         import torch
 
         from fmapping.camera import PinholeCamera
-        from fmapping.mapper import Mapper
+        from fmapping.mapping import Mapper
 
         path = Path(path) if path else self.checkpoint_path
         if path is None or not path.is_file():
@@ -635,6 +635,6 @@ def _bounded(pts: np.ndarray, cols: np.ndarray, max_points: int, seed: int) -> t
 def load_mapper_config(path=None, overrides: Optional[dict] = None):
     """MapperConfig from YAML (``fmapping.config.load_config``)."""
     from fmapping.config import load_config
-    from fmapping.mapper import MapperConfig
+    from fmapping.mapping import MapperConfig
 
     return load_config(MapperConfig(), path, overrides)

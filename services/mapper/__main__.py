@@ -26,7 +26,7 @@ from services.mapper import POSE_SOURCES, MapperCore, MapperServiceOptions, load
 def build_parser() -> argparse.ArgumentParser:
     p = service_parser("services.mapper", __doc__)
     p.add_argument("--poses", default="gt", choices=POSE_SOURCES, help="pose source: key poses/<source>")
-    p.add_argument("--config", default=None, help="YAML overrides of the mapper config (fmapping.mapper.MapperConfig)")
+    p.add_argument("--config", default=None, help="YAML overrides of the mapper config (fmapping.mapping.MapperConfig)")
     p.add_argument("--field", default=None, choices=["cp", "vm", "mlp", "grid"],
                    help="field type (default: the config's field.kind, cp)")
     p.add_argument("--out", default=None, help="output folder for map.ply, mesh.ply, traj.txt, stats.json, checkpoint.pt")

@@ -1,0 +1,116 @@
+"""The mapper's settings (:class:`MapperConfig`, YAML-overridable) and their checks."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field as dc_field
+from typing import Optional
+
+from fmapping.field import FieldConfig
+from fmapping.sparse_points import SparsePointsConfig
+
+
+@dataclass
+class MapperConfig:
+    """Mapper settings (YAML-overridable through :func:`fmapping.config.load_config`).
+
+    Defaults follow the paper where it is specific (15 init frames, rounds 32 / 64 / 64 / 64
+    with sliding windows 3 / 4 / 5, window of 20 frames, 20 iterations every 5 frames, Adam
+    lr 0.02 / 0.001, decoder frozen after init) and were measured on synthetic rooms where it
+    is not (GT poses, RGB only, 200 frames at 320x240, bench/mapping.py): 1024 rays x (32
+    coarse + 16 importance) samples, warping weight 2 over 8 random window views with the
+    mean over the valid views (``warp_keep`` 1; keeping only the best half favours the
+    small-baseline views, which barely see depth errors - on the 15 init frames both gave the
+    same depth error), per-sample photo-consistency weight 4. In the init rounds
+    the "samples per ray" are the coarse stratified samples plus ``samples - n_coarse``
+    sliding-window samples.
+    """
+
+    field: FieldConfig = dc_field(default_factory=FieldConfig)
+    # --- init stage
+    init_frames: int = 15
+    init_rounds: tuple = ((0, 32), (3, 64), (4, 64), (5, 64))  # (sliding window size (0 = stratified), samples per ray)
+    init_iters_per_round: int = 75
+    optimize_init_poses: bool = True  # frame 0 fixed; se(3) corrections for the others
+    freeze_decoder_after_init: bool = True
+    # --- on-the-fly stage
+    window_size: int = 20
+    new_frames_per_window: int = 5
+    iters_per_window: int = 20
+    n_global_keyframes: int = 10
+    keyframe_every: int = 5
+    # --- rays and samples
+    rays_per_iter: int = 1024
+    n_coarse: int = 32  # stratified samples (evaluated without gradient, density only)
+    n_fine: int = 16  # importance / sliding-window samples added to them
+    sampler: str = "pdf"  # on-the-fly fine samples: "pdf" | "sliding_window" | "stratified"
+    sw_window: int = 5
+    color_threshold: float = 0.01  # colour evaluated only where weight > this x the ray's max weight
+    active_threshold: float = 1e-3  # coarse samples re-evaluated with gradient only above this x max opacity (0: all)
+    # --- optimiser
+    lr_grid: float = 0.02
+    lr_decoder: float = 0.001
+    lr_pose: float = 0.001
+    # --- losses
+    photo_loss: str = "l2"
+    huber_delta: float = 0.1
+    warp_weight: float = 2.0
+    warp_radius: int = 1
+    warp_dilations: tuple = (1.0,)
+    warp_keep: float = 1.0
+    warp_views: int = 8  # target views per iteration (random subset of the window; 0 = all)
+    warp_depth: str = "expected"  # depth for warping: "expected" (sum w t / acc) | "far" (unreached mass at the ray's far bound)
+    pc_weight: float = 4.0  # per-sample photo-consistency loss sum_i w_i (cost_i - mean cost) (plane-sweep cost volume)
+    pc_rays: int = 512  # rays (of rays_per_iter) that get the per-sample cost
+    pc_views: int = 4  # other window views the per-sample cost is computed in
+    pc_radius: int = 0  # patch radius of the per-sample cost
+    tv_weight: float = 0.0
+    l1_weight: float = 0.0
+    distortion_weight: float = 0.0  # mip-NeRF 360 distortion loss on the colour rays (compact termination, no fog)
+    use_depth: bool = False
+    depth_weight: float = 0.5
+    # --- sparse points: KLT tracks triangulated with the given poses (fmapping.sparse_points)
+    sparse: SparsePointsConfig = dc_field(default_factory=SparsePointsConfig)
+    sparse_depth_weight: float = 1.0  # weight of the sparse depth term (0: off); pulls rays onto triangulated points
+    sparse_rays: int = 256  # rays per iteration through triangulated points
+    sparse_fill_weight: float = 0.0  # weight (x the points') of depth filled in between a frame's points (0: off)
+    # --- per-frame affine colour (auto exposure / white balance): rendered = (1 + a) * colour + b per channel
+    exposure: bool = True
+    lr_exposure: float = 0.001
+    exposure_reg: float = 0.01  # pull of (a, b) towards 0 (no change)
+    # --- scene bounds
+    near: float = 0.1
+    far: float = 6.0
+    bbox: Optional[tuple] = None  # ((xmin, ymin, zmin), (xmax, ymax, zmax)); given: fixed, no growth
+    bbox_margin: float = 0.1
+    bounds: str = "points"  # box without `bbox`: "points" (triangulated, grows with them) | "frusta" (near..far)
+    bounds_grow: float = 0.05  # re-fit the box when the points leave it by more than this share of its extent
+    # --- closing refinement
+    final_global_iters: int = 300
+    seed: int = 0
+    device: str = "auto"
+
+    def validate(self) -> None:
+        if self.init_frames < 1:
+            raise ValueError(f"MapperConfig.init_frames must be >= 1, got {self.init_frames}")
+        if self.window_size < 2 or not 0 <= self.n_global_keyframes < self.window_size:
+            raise ValueError(f"MapperConfig: need window_size >= 2 and 0 <= n_global_keyframes < window_size, "
+                             f"got {self.window_size}, {self.n_global_keyframes}")
+        if self.new_frames_per_window < 1 or self.new_frames_per_window > self.window_size - self.n_global_keyframes:
+            raise ValueError("MapperConfig.new_frames_per_window must be in 1..window_size - n_global_keyframes")
+        if self.sampler not in ("pdf", "sliding_window", "stratified"):
+            raise ValueError(f"MapperConfig.sampler must be pdf, sliding_window or stratified, got {self.sampler!r}")
+        if self.bounds not in ("points", "frusta"):
+            raise ValueError(f"MapperConfig.bounds must be 'points' or 'frusta', got {self.bounds!r}")
+        if min(self.sparse_depth_weight, self.sparse_rays, self.sparse_fill_weight, self.lr_exposure, self.exposure_reg,
+               self.distortion_weight) < 0:
+            raise ValueError("MapperConfig: sparse_depth_weight, sparse_rays, sparse_fill_weight, lr_exposure, exposure_reg "
+                             "and distortion_weight must be >= 0")
+        self.sparse.validate()
+        if self.warp_depth not in ("far", "expected"):
+            raise ValueError(f"MapperConfig.warp_depth must be 'far' or 'expected', got {self.warp_depth!r}")
+        if not 0 < self.near < self.far:
+            raise ValueError(f"MapperConfig: need 0 < near < far, got near={self.near}, far={self.far}")
+        if self.rays_per_iter < 1 or self.n_coarse < 2:
+            raise ValueError("MapperConfig: rays_per_iter must be >= 1 and n_coarse >= 2")
+        for r in self.init_rounds:
+            if len(r) != 2 or r[0] < 0 or r[1] < 2:
+                raise ValueError(f"MapperConfig.init_rounds entries are (window >= 0, samples >= 2), got {r!r}")

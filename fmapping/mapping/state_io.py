@@ -1,0 +1,106 @@
+"""Saving and restoring a mapper exactly (:class:`MapperStateIO`, mixed into
+:class:`fmapping.mapping.Mapper`); tensors and plain python only, for ``weights_only`` loading."""
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+from torch import Tensor
+
+from fmapping.camera import PinholeCamera
+from fmapping.fileio import plain_tree
+from fmapping.mapping.window_schedule import WindowStats
+
+STATE_VERSION = 1
+
+
+class MapperStateIO:
+    """:meth:`state_dict` / :meth:`load_state_dict` of :class:`fmapping.mapping.Mapper` (a mixin)."""
+
+    def state_dict(self) -> dict:
+        """Everything needed to resume exactly (tensors and plain python only)."""
+        return {
+            "version": STATE_VERSION,
+            "config": plain_tree(dataclasses.asdict(self.cfg)),
+            "camera": self.camera.to_dict(),
+            "aabb": None if self.aabb is None else self.aabb.detach().cpu().clone(),
+            "aabb_given": None if self._aabb_given is None else self._aabb_given.clone(),
+            "field": None if self.field is None else {k: v.detach().cpu().clone() for k, v in self.field.state_dict().items()},
+            "optimizer": None if self._opt is None else _cpu_tree(self._opt.state_dict()),
+            "pose_corr": None if self._pose_corr is None else self._pose_corr.detach().cpu().clone(),
+            "images": {int(i): im.clone() for i, im in self._images.items()},
+            "depths": {int(i): dp.clone() for i, dp in self._depths.items()},
+            "poses": {int(i): p.clone() for i, p in self._poses.items()},
+            "timestamps": {int(i): float(t) for i, t in self._timestamps.items()},
+            "guessed": sorted(self._guessed),
+            "next_id": self._next_id,
+            "init_ids": list(self._init_ids),
+            "pending": list(self._pending),
+            "local": list(self._local),
+            "keyframes": list(self._keyframes),
+            "window": list(self._window),
+            "initialized": self.initialized,
+            "finished": self._finished,
+            "iterations": self._iterations,
+            "stats": [s.to_dict() for s in self._stats],
+            "rng": self._gen.get_state().clone(),
+            "exposure": {int(i): p.detach().cpu().clone() for i, p in self._exposure.items()},
+            "sparse": None if self._sparse is None else self._sparse.state_dict(),
+            "box_refits": self._box_refits,
+        }
+
+    def load_state_dict(self, d: dict) -> None:
+        """Restore a :meth:`state_dict` (the camera must match; the config of this mapper is kept)."""
+        if not isinstance(d, dict) or d.get("version") != STATE_VERSION:
+            raise ValueError(f"Mapper.load_state_dict: not a mapper state of version {STATE_VERSION}")
+        cam = PinholeCamera.from_dict(d["camera"])
+        if cam != self.camera:
+            raise ValueError(f"Mapper.load_state_dict: camera differs ({cam} vs {self.camera})")
+        self._aabb_given = None if d["aabb_given"] is None else d["aabb_given"].clone()
+        self._images = {int(i): im.clone() for i, im in d["images"].items()}
+        self._depths = {int(i): dp.clone() for i, dp in d["depths"].items()}
+        self._poses = {int(i): p.clone().to(torch.float64) for i, p in d["poses"].items()}
+        self._timestamps = {int(i): float(t) for i, t in d["timestamps"].items()}
+        self._guessed = set(d["guessed"])
+        self._next_id = int(d["next_id"])
+        self._init_ids = list(d["init_ids"])
+        self._pending = list(d["pending"])
+        self._local = list(d["local"])
+        self._keyframes = list(d["keyframes"])
+        self._window = list(d["window"])
+        self.initialized = bool(d["initialized"])
+        self._finished = bool(d["finished"])
+        self._iterations = int(d["iterations"])
+        self._stats = [WindowStats(**s) for s in d["stats"]]
+        self._gen.set_state(d["rng"].clone())
+        self._box_refits = int(d.get("box_refits", 0))
+        if self._sparse is not None and d.get("sparse") is not None:
+            self._sparse.load_state_dict(d["sparse"])
+        self._exposure = {}
+        for i, e in sorted(d.get("exposure", {}).items()):
+            self._exposure[int(i)] = torch.nn.Parameter(e.clone().to(self.device), requires_grad=int(i) > 0)
+        self.field, self._opt, self._pose_corr, self.aabb = None, None, None, None
+        if d["field"] is not None:
+            self._aabb_given, given = d["aabb"].clone(), self._aabb_given
+            self._build()
+            self._aabb_given = given
+            self.field.load_state_dict(d["field"])
+            if self._pose_corr is not None and d["pose_corr"] is not None:
+                with torch.no_grad():
+                    self._pose_corr.copy_(d["pose_corr"].to(self.device))
+            if self.initialized:
+                if self.cfg.freeze_decoder_after_init:
+                    self._freeze_decoder()
+                elif self._pose_corr is not None:
+                    self._pose_corr.requires_grad_(False)
+            self._opt.load_state_dict(d["optimizer"])
+
+
+def _cpu_tree(x):
+    if isinstance(x, Tensor):
+        return x.detach().cpu().clone()
+    if isinstance(x, dict):
+        return {k: _cpu_tree(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_cpu_tree(v) for v in x]
+    return x
