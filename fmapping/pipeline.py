@@ -32,12 +32,12 @@ import numpy as np
 from fmapping.cancel import Cancelled, StopFn
 from fmapping.config import load_config, to_dict
 from fmapping.fileio import json_default
+from fmapping.map_outputs import write_map_outputs
 from fmapping.mapper import Mapper, MapperConfig, aabb_from_depth, aabb_from_poses
 
 log = logging.getLogger("fmapping.pipeline")
 
 EXPORT_EVERY = 3  # export renders every 3rd frame's view
-MESH_RESOLUTION = 160  # marching-cubes grid nodes per axis (level 0.5 of the per-cell opacity)
 
 
 def _pose_source(ds, poses_arg: str) -> list:
@@ -135,41 +135,6 @@ def open_job_dataset(args):
     if len(ds) == 0:
         raise ValueError(f"dataset {args.data} has no frames")
     return ds
-
-
-def write_map_outputs(mapper: Mapper, poses: dict, camera, out: Path, *, near: float, far: float,
-                      cloud_samples: Optional[tuple[int, int]] = None, mesh_samples: tuple[int, int] = (48, 16),
-                      mesh_resolution: int = MESH_RESOLUTION, center: Optional[np.ndarray] = None,
-                      scale: float = 1.0) -> dict:
-    """Export the map seen from ``poses`` (dict frame id -> c2w) into ``out/map.ply`` (coloured
-    point cloud, :func:`fmapping.export.export_point_cloud`, rendered with ``cloud_samples``
-    = (coarse, fine) samples per ray, the exporter's defaults when None) and ``out/mesh.ply`` (:func:`fmapping.export.export_mesh`
-    on a ``mesh_resolution``^3 grid, culled with depth rendered with ``mesh_samples``).
-    With ``center`` both are written through the similarity ``x -> center + scale (x - center)``
-    (the SLAM output frame). Returns ``{"points", "mesh_vertices", "mesh_faces", "seconds"}``."""
-    from fmapping.export import export_mesh, export_point_cloud
-    from fmapping.ply import write_ply
-
-    t0 = time.perf_counter()
-    kw = {} if cloud_samples is None else {"n_samples": cloud_samples[0], "n_importance": cloud_samples[1]}
-    pts, cols = export_point_cloud(mapper, poses, camera, near=near, far=far, **kw)
-
-    def render_fn(c2w, cam):
-        r = mapper.render(c2w, cam, samples=mesh_samples)
-        return {"depth": r["depth_normalized"], "acc": r["acc"]}
-
-    verts, faces, vcols = export_mesh(mapper.field, mapper.aabb, mesh_resolution, poses, camera,
-                                      render=render_fn, near=near, far=far)
-    if center is not None:
-        c = np.asarray(center, np.float64)
-        if len(pts):
-            pts = c + scale * (np.asarray(pts) - c)
-        if len(verts):
-            verts = c + scale * (np.asarray(verts) - c)
-    write_ply(out / "map.ply", pts, cols)
-    write_ply(out / "mesh.ply", verts, vcols, faces)
-    return {"points": int(len(pts)), "mesh_vertices": int(len(verts)), "mesh_faces": int(len(faces)),
-            "seconds": time.perf_counter() - t0}
 
 
 def recon_stats(ds, out: Path, mesh: bool = False, sim3: Optional[tuple] = None) -> dict:
