@@ -1,16 +1,16 @@
 """The full SLAM loop behind ``fmapping slam``: track every frame, map with the tracked poses.
 
-``run_slam(args)`` opens ``args.data`` and runs, frame by frame,
+``run_slam(job)`` (:class:`fmapping.job.Job`) opens ``job.data`` and runs, frame by frame,
 
     pose source -> Mapper.add_frame -> (after each mapping window) refresh of the tracker's reference
 
-and writes into ``args.out``: ``map.ply`` (coloured point cloud), ``mesh.ply``,
+and writes into ``job.out``: ``map.ply`` (coloured point cloud), ``mesh.ply``,
 ``traj.txt`` (TUM format, every frame), ``stats.json`` (per-frame tracking ms,
 per-window mapping seconds, tracking-loss events, ATE against the GT when it exists).
 ``--no-export`` (``slam.export: false``) skips ``map.ply`` / ``mesh.ply`` (and the
 reconstruction metrics); ``traj.txt`` and ``stats.json`` are still written.
 
-Pose sources (``args.poses``):
+Pose sources (``job.poses``):
 
 * ``photometric`` (default): RGB only, front end :class:`~fmapping.tracking.mono.MonoFrontend`
   (``slam.frontend: mono``): KLT tracks and a two-view bootstrap give the first poses
@@ -69,6 +69,7 @@ from fmapping.cancel import Cancelled, StopFn
 from fmapping.config import load_config, to_dict
 from fmapping.mapper import Mapper, MapperConfig
 from fmapping.session import PoseSession, SlamSession, session_config_from
+from fmapping.job import Job
 from fmapping.map_outputs import MESH_RESOLUTION, write_map_outputs
 from fmapping.pipeline import open_job_dataset, recon_stats, write_stats
 from fmapping.tracking.direct import scale_about
@@ -121,22 +122,23 @@ class SlamConfig:
         self.mapper.validate()
 
 
-def build_slam_config(args) -> SlamConfig:
-    cfg = load_config(SlamConfig(), getattr(args, "config", None))
+def build_slam_config(job: Job) -> SlamConfig:
+    """The config of a ``fmapping slam`` job: its YAML, then the job's depth, box, device, pose source."""
+    cfg = load_config(SlamConfig(), job.config)
     m = cfg.mapper
-    if getattr(args, "use_depth", False):
+    if job.use_depth:
         m = dataclasses.replace(m, use_depth=True)
-    if getattr(args, "bbox", None) is not None:
-        m = dataclasses.replace(m, bbox=tuple(tuple(map(float, r)) for r in args.bbox))
-    dev = getattr(args, "device", None)
+    if job.bbox is not None:
+        m = dataclasses.replace(m, bbox=tuple(tuple(map(float, r)) for r in job.bbox))
+    dev = job.device
     if dev and dev != "auto":
         m = dataclasses.replace(m, device=dev)
-    poses = getattr(args, "poses", "photometric")
+    poses = job.poses
     if poses not in ("photometric",) or m.use_depth or (cfg.frontend == "mono" and not cfg.mapper_refines_init):
         # external poses are trusted; with sensor depth the bootstrap is RGB-D odometry, already metric
         m = dataclasses.replace(m, optimize_init_poses=False)
     cfg = dataclasses.replace(cfg, mapper=m)
-    if getattr(args, "export", True) is False:  # --no-export
+    if not job.export:  # --no-export
         cfg = dataclasses.replace(cfg, export=False)
     cfg.validate()
     return cfg
@@ -661,7 +663,7 @@ def _export(run: SlamRun, out: Path) -> dict:
                              center=run.c2w0[:3, 3], scale=run.scale)
 
 
-def run_slam(args, should_stop: StopFn = None) -> dict:
+def run_slam(job: Job, should_stop: StopFn = None) -> dict:
     """Run the SLAM loop (see the module docstring); returns the stats dict with a ``summary``.
     ``should_stop()`` True ends it early: the frames so far are written, without the closing
     optimisation (``summary["stopped_at"]``: the first frame not processed)."""
@@ -670,12 +672,12 @@ def run_slam(args, should_stop: StopFn = None) -> dict:
     from fmapping.trajectory import write_tum_trajectory
 
     t_start = time.perf_counter()
-    ds = open_job_dataset(args)
-    cfg = build_slam_config(args)
-    poses_mode = getattr(args, "poses", "photometric") or "photometric"
-    out = Path(args.out)
+    ds = open_job_dataset(job)
+    cfg = build_slam_config(job)
+    poses_mode = job.poses or "photometric"
+    out = Path(job.out)
     out.mkdir(parents=True, exist_ok=True)
-    run = SlamRun(ds, cfg, poses_mode, out, progress=not getattr(args, "quiet", False), should_stop=should_stop)
+    run = SlamRun(ds, cfg, poses_mode, out, progress=not job.quiet, should_stop=should_stop)
     run.run()
     t_loop = time.perf_counter() - t_start
     est = run.output_poses()
