@@ -118,17 +118,20 @@ def write_yaml(path: Path, data: dict) -> str:
     return str(path)
 
 
-def map_args(data: Path, out: Path, config: str, max_frames: Optional[int]) -> argparse.Namespace:
+def map_args(data: Path, out: Path, config: str, max_frames: Optional[int]):
     """What ``fmapping map --data D --poses gt --out O --config C`` builds."""
-    return argparse.Namespace(command="map", data=str(data), out=str(out), poses="gt", config=config, field=None,
-                              use_depth=False, device="auto", camera=None, max_frames=max_frames, quiet=True)
+    from fmapping.job import Job
+
+    return Job(data=str(data), out=str(out), poses="gt", config=config, device="auto", max_frames=max_frames,
+               quiet=True)
 
 
-def slam_args(data: Path, out: Path, config: str, max_frames: Optional[int]) -> argparse.Namespace:
+def slam_args(data: Path, out: Path, config: str, max_frames: Optional[int]):
     """What ``fmapping slam --data D --out O --config C`` builds (RGB only, photometric poses)."""
-    return argparse.Namespace(command="slam", data=str(data), out=str(out), poses="photometric", config=config,
-                              use_depth=False, device="auto", camera=None, max_frames=max_frames, export=True,
-                              quiet=True)
+    from fmapping.job import Job
+
+    return Job(data=str(data), out=str(out), poses="photometric", config=config, device="auto",
+               max_frames=max_frames, export=True, quiet=True)
 
 
 # ----------------------------------------------------------------------------- measures

@@ -34,6 +34,7 @@ KEYS = ("ate_sim3_rmse_m", "ate_se3_rmse_m", "ate_none_rmse_m", "ate_rot_fit_deg
 
 
 def run_seed(seed: int, frames: int, size: tuple[int, int], scenes: Path, out: Path, export: bool) -> dict:
+    from fmapping.job import Job
     from fmapping.slam import run_slam
     from fmapping.synthetic import generate_scene
 
@@ -41,9 +42,8 @@ def run_seed(seed: int, frames: int, size: tuple[int, int], scenes: Path, out: P
     if not (data / "scene.json").is_file():
         print(f"[slam] generating {data}", flush=True)
         generate_scene(data, seed=seed, frames=frames, size=size)
-    args = argparse.Namespace(data=str(data), out=str(out / f"s{seed}"), config=None, poses="photometric",
-                              use_depth=False, device="cpu", camera=None, max_frames=None, export=export, quiet=True)
-    s = run_slam(args)["summary"]
+    job = Job(data=str(data), out=str(out / f"s{seed}"), poses="photometric", device="cpu", export=export, quiet=True)
+    s = run_slam(job)["summary"]
     return {k: s.get(k) for k in KEYS}
 
 

@@ -305,20 +305,22 @@ def cmd_info(a) -> int:
 
 
 def cmd_map(a) -> int:
+    from fmapping.job import Job
     from fmapping.pipeline import run_map
 
     with stop_on_signal("fmapping map") as stop:
-        stats = run_map(a, should_stop=stop.is_set)
+        stats = run_map(Job.from_args(a, poses="gt"), should_stop=stop.is_set)
     summary = stats.get("summary", {})
     _print_json(summary)
     return 130 if summary.get("stopped_at") is not None else 0
 
 
 def cmd_slam(a) -> int:
+    from fmapping.job import Job
     from fmapping.slam import run_slam
 
     with stop_on_signal("fmapping slam") as stop:
-        stats = run_slam(a, should_stop=stop.is_set)
+        stats = run_slam(Job.from_args(a, poses="photometric"), should_stop=stop.is_set)
     summary = stats.get("summary", {})
     _print_json(summary)
     return 130 if summary.get("stopped_at") is not None else 0

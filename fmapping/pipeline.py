@@ -1,8 +1,8 @@
 """The mapping job behind ``fmapping map``.
 
-``run_map(args)`` opens a dataset, streams its frames with known poses (ground truth
+``run_map(job)`` (:class:`fmapping.job.Job`) opens a dataset, streams its frames with known poses (ground truth
 or a TUM trajectory file) into a :class:`fmapping.mapping.Mapper`, exports the map and
-writes into ``args.out``:
+writes into ``job.out``:
 
 * ``map.ply``    coloured point cloud (:func:`fmapping.export.export_point_cloud`),
 * ``mesh.ply``   coloured mesh (:func:`fmapping.export.export_mesh`),
@@ -32,12 +32,13 @@ import numpy as np
 from fmapping.cancel import Cancelled, StopFn
 from fmapping.config import load_config, to_dict
 from fmapping.fileio import json_default
+from fmapping.job import Job
+from fmapping.map_outputs import write_map_outputs
 from fmapping.mapping import Mapper, MapperConfig, aabb_from_depth, aabb_from_poses
 
 log = logging.getLogger("fmapping.pipeline")
 
 EXPORT_EVERY = 3  # export renders every 3rd frame's view
-MESH_RESOLUTION = 160  # marching-cubes grid nodes per axis (level 0.5 of the per-cell opacity)
 
 
 def _pose_source(ds, poses_arg: str) -> list:
@@ -78,18 +79,19 @@ def scene_aabb(ds, cfg: MapperConfig, poses: list, use_depth: Optional[bool] = N
     return aabb_from_poses(np.stack([p for _, p in known]), ds.camera, cfg.near, cfg.far, cfg.bbox_margin)
 
 
-def build_config(args) -> MapperConfig:
-    cfg = load_config(MapperConfig(), getattr(args, "config", None))
-    if getattr(args, "field", None):
-        cfg = dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, kind=args.field))
-    if getattr(args, "use_depth", False):
+def build_config(job: Job) -> MapperConfig:
+    """The mapper config of a ``fmapping map`` job: its YAML, then the job's field, depth, box, device."""
+    cfg = load_config(MapperConfig(), job.config)
+    if job.field:
+        cfg = dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, kind=job.field))
+    if job.use_depth:
         cfg = dataclasses.replace(cfg, use_depth=True)
-    if getattr(args, "bbox", None) is not None:
-        cfg = dataclasses.replace(cfg, bbox=tuple(tuple(map(float, r)) for r in args.bbox))
-    dev = getattr(args, "device", None)
+    if job.bbox is not None:
+        cfg = dataclasses.replace(cfg, bbox=tuple(tuple(map(float, r)) for r in job.bbox))
+    dev = job.device
     if dev and dev != "auto":
         cfg = dataclasses.replace(cfg, device=dev)
-    if getattr(args, "poses", "gt") == "gt":
+    if job.poses == "gt":
         cfg = dataclasses.replace(cfg, optimize_init_poses=False)  # ground truth is trusted
     cfg.validate()
     return cfg
@@ -123,53 +125,15 @@ def _heldout_psnr(mapper: Mapper, ds, used: list, n: int = 8) -> Optional[float]
 
 
 # ----------------------------------------------------------------------------- job I/O (shared with fmapping.slam)
-def open_job_dataset(args):
-    """The dataset of a job: ``args.data`` with the optional ``args.camera`` / ``args.max_frames`` and the
-    source options of :func:`fmapping.cli.add_source_args`.
+def open_job_dataset(job: Job):
+    """The dataset of a job: ``job.data`` with its camera, frame count and source options.
     A dataset without frames is a ValueError naming the folder."""
-    from fmapping.cli import source_options
     from fmapping.datasets import open_dataset
 
-    ds = open_dataset(args.data, camera=getattr(args, "camera", None), max_frames=getattr(args, "max_frames", None),
-                      **source_options(args))
+    ds = open_dataset(job.data, camera=job.camera, max_frames=job.max_frames, **job.source_options())
     if len(ds) == 0:
-        raise ValueError(f"dataset {args.data} has no frames")
+        raise ValueError(f"dataset {job.data} has no frames")
     return ds
-
-
-def write_map_outputs(mapper: Mapper, poses: dict, camera, out: Path, *, near: float, far: float,
-                      cloud_samples: Optional[tuple[int, int]] = None, mesh_samples: tuple[int, int] = (48, 16),
-                      mesh_resolution: int = MESH_RESOLUTION, center: Optional[np.ndarray] = None,
-                      scale: float = 1.0) -> dict:
-    """Export the map seen from ``poses`` (dict frame id -> c2w) into ``out/map.ply`` (coloured
-    point cloud, :func:`fmapping.export.export_point_cloud`, rendered with ``cloud_samples``
-    = (coarse, fine) samples per ray, the exporter's defaults when None) and ``out/mesh.ply`` (:func:`fmapping.export.export_mesh`
-    on a ``mesh_resolution``^3 grid, culled with depth rendered with ``mesh_samples``).
-    With ``center`` both are written through the similarity ``x -> center + scale (x - center)``
-    (the SLAM output frame). Returns ``{"points", "mesh_vertices", "mesh_faces", "seconds"}``."""
-    from fmapping.export import export_mesh, export_point_cloud
-    from fmapping.ply import write_ply
-
-    t0 = time.perf_counter()
-    kw = {} if cloud_samples is None else {"n_samples": cloud_samples[0], "n_importance": cloud_samples[1]}
-    pts, cols = export_point_cloud(mapper, poses, camera, near=near, far=far, **kw)
-
-    def render_fn(c2w, cam):
-        r = mapper.render(c2w, cam, samples=mesh_samples)
-        return {"depth": r["depth_normalized"], "acc": r["acc"]}
-
-    verts, faces, vcols = export_mesh(mapper.field, mapper.aabb, mesh_resolution, poses, camera,
-                                      render=render_fn, near=near, far=far)
-    if center is not None:
-        c = np.asarray(center, np.float64)
-        if len(pts):
-            pts = c + scale * (np.asarray(pts) - c)
-        if len(verts):
-            verts = c + scale * (np.asarray(verts) - c)
-    write_ply(out / "map.ply", pts, cols)
-    write_ply(out / "mesh.ply", verts, vcols, faces)
-    return {"points": int(len(pts)), "mesh_vertices": int(len(verts)), "mesh_faces": int(len(faces)),
-            "seconds": time.perf_counter() - t0}
 
 
 def recon_stats(ds, out: Path, mesh: bool = False, sim3: Optional[tuple] = None) -> dict:
@@ -205,7 +169,7 @@ def write_stats(out: Path, stats: dict, summary: dict) -> dict:
 
 
 # ----------------------------------------------------------------------------- the mapping job
-def run_map(args, should_stop: StopFn = None) -> dict:
+def run_map(job: Job, should_stop: StopFn = None) -> dict:
     """Run the mapping job (see the module docstring); returns the stats dict with a ``summary``.
     ``should_stop()`` True ends it early: the map so far is exported without the closing stage
     (``summary["stopped_at"]``: the first frame not given to the mapper)."""
@@ -215,15 +179,15 @@ def run_map(args, should_stop: StopFn = None) -> dict:
     from fmapping.trajectory import write_tum_trajectory
 
     t_start = time.perf_counter()
-    ds = open_job_dataset(args)
-    cfg = build_config(args)
-    poses = _pose_source(ds, getattr(args, "poses", "gt"))
+    ds = open_job_dataset(job)
+    cfg = build_config(job)
+    poses = _pose_source(ds, job.poses)
     aabb = scene_aabb(ds, cfg, poses)
-    out = Path(args.out)
+    out = Path(job.out)
     out.mkdir(parents=True, exist_ok=True)
     mapper = Mapper(cfg, ds.camera, aabb=aabb, should_stop=should_stop)
     used, skipped, stopped_at = [], 0, None
-    with tqdm(range(len(ds)), desc="mapping", unit="frame", disable=getattr(args, "quiet", False)) as bar:
+    with tqdm(range(len(ds)), desc="mapping", unit="frame", disable=job.quiet) as bar:
         for i in bar:
             if should_stop is not None and should_stop():
                 stopped_at = i
@@ -239,7 +203,7 @@ def run_map(args, should_stop: StopFn = None) -> dict:
                 stopped_at = i + 1
                 break
     if not used and stopped_at is None:
-        raise ValueError(f"no frame of {args.data} has a pose")
+        raise ValueError(f"no frame of {job.data} has a pose")
     if stopped_at is None:
         try:
             mapper.finish()
@@ -270,7 +234,7 @@ def run_map(args, should_stop: StopFn = None) -> dict:
     stats = {
         "config": to_dict(cfg),
         "dataset": ds.describe(),
-        "poses": getattr(args, "poses", "gt"),
+        "poses": job.poses,
         "frames_used": len(used),
         "frames_without_pose": skipped,
         "stopped_at": stopped_at,

@@ -1,16 +1,16 @@
 """The full SLAM loop behind ``fmapping slam``: track every frame, map with the tracked poses.
 
-``run_slam(args)`` opens ``args.data`` and runs, frame by frame,
+``run_slam(job)`` (:class:`fmapping.job.Job`) opens ``job.data`` and runs, frame by frame,
 
     pose source -> Mapper.add_frame -> (after each mapping window) refresh of the tracker's reference
 
-and writes into ``args.out``: ``map.ply`` (coloured point cloud), ``mesh.ply``,
+and writes into ``job.out``: ``map.ply`` (coloured point cloud), ``mesh.ply``,
 ``traj.txt`` (TUM format, every frame), ``stats.json`` (per-frame tracking ms,
 per-window mapping seconds, tracking-loss events, ATE against the GT when it exists).
 ``--no-export`` (``slam.export: false``) skips ``map.ply`` / ``mesh.ply`` (and the
 reconstruction metrics); ``traj.txt`` and ``stats.json`` are still written.
 
-Pose sources (``args.poses``):
+Pose sources (``job.poses``):
 
 * ``photometric`` (default): RGB only, front end :class:`~fmapping.tracking.mono.MonoFrontend`
   (``slam.frontend: mono``): KLT tracks and a two-view bootstrap give the first poses
@@ -67,12 +67,15 @@ import numpy as np
 
 from fmapping.cancel import Cancelled, StopFn
 from fmapping.config import load_config, to_dict
+from fmapping.job import Job
+from fmapping.map_outputs import MESH_RESOLUTION, write_map_outputs
 from fmapping.mapping import Mapper, MapperConfig
-from fmapping.pipeline import MESH_RESOLUTION, open_job_dataset, recon_stats, write_map_outputs, write_stats
+from fmapping.pipeline import open_job_dataset, recon_stats, write_stats
+from fmapping.session import PoseSession, SlamSession, session_config_from
 from fmapping.tracking.direct import scale_about
 from fmapping.tracking.frontend import DirectTracker, TrackerConfig
 from fmapping.tracking.mapview import MapView, MapViewConfig
-from fmapping.tracking.mono import MonoConfig, MonoFrontend, moved_poses
+from fmapping.tracking.mono import MonoConfig
 from fmapping.tracking.render_compare import RenderCompareConfig
 from fmapping.tracking.sources import KissIcpConfig
 
@@ -119,22 +122,23 @@ class SlamConfig:
         self.mapper.validate()
 
 
-def build_slam_config(args) -> SlamConfig:
-    cfg = load_config(SlamConfig(), getattr(args, "config", None))
+def build_slam_config(job: Job) -> SlamConfig:
+    """The config of a ``fmapping slam`` job: its YAML, then the job's depth, box, device, pose source."""
+    cfg = load_config(SlamConfig(), job.config)
     m = cfg.mapper
-    if getattr(args, "use_depth", False):
+    if job.use_depth:
         m = dataclasses.replace(m, use_depth=True)
-    if getattr(args, "bbox", None) is not None:
-        m = dataclasses.replace(m, bbox=tuple(tuple(map(float, r)) for r in args.bbox))
-    dev = getattr(args, "device", None)
+    if job.bbox is not None:
+        m = dataclasses.replace(m, bbox=tuple(tuple(map(float, r)) for r in job.bbox))
+    dev = job.device
     if dev and dev != "auto":
         m = dataclasses.replace(m, device=dev)
-    poses = getattr(args, "poses", "photometric")
+    poses = job.poses
     if poses not in ("photometric",) or m.use_depth or (cfg.frontend == "mono" and not cfg.mapper_refines_init):
         # external poses are trusted; with sensor depth the bootstrap is RGB-D odometry, already metric
         m = dataclasses.replace(m, optimize_init_poses=False)
     cfg = dataclasses.replace(cfg, mapper=m)
-    if getattr(args, "export", True) is False:  # --no-export
+    if not job.export:  # --no-export
         cfg = dataclasses.replace(cfg, export=False)
     cfg.validate()
     return cfg
@@ -243,7 +247,8 @@ class SlamRun:
         self.degraded = False  # True while the map cannot give depth: references use the constant-depth plane
         self.boot_scale = 1.0
         self.init_degraded = False
-        self.frontend: Optional[MonoFrontend] = None
+        self.frontend = None  # the session's MonoFrontend (mono front end)
+        self.session: Optional[SlamSession] = None
         self.tracker: Optional[DirectTracker] = None
         self.view: Optional[MapView] = None
         self._rc = None
@@ -490,60 +495,44 @@ class SlamRun:
         return base
 
     def run_mono(self) -> None:
+        """The mono front end driven through a :class:`~fmapping.session.SlamSession`, which owns the policy
+        (bootstrap buffer, late-anchor hold, bundle-adjusted poses to the mapper)."""
         cfg = self.cfg
         n = len(self.ds)
-        fe = MonoFrontend(self.camera, cfg.tracker, cfg.mono)
-        self.frontend = fe
-        anchor = self._anchor_fn()
-        buf = []
+        poses = PoseSession(self.camera, cfg.tracker, cfg.mono, session_config_from(cfg), c2w0=self.c2w0,
+                            baseline=self._anchor_fn())
+        sess = SlamSession(poses, lambda: self._new_mapper(cfg.mapper.init_frames), feed_lost=cfg.feed_lost_frames,
+                           use_depth=self.use_depth, on_window=self._on_window)
+        fe = self.frontend = poses.frontend
+        self.session = sess
+        boot = []
         i = 0
         t_boot = time.perf_counter()
-        while i < n and not fe.initialized:
+        while i < n and not poses.initialized:
             f = self.ds[i]
-            buf.append(f)
-            out = fe.bootstrap(i, f.rgb, self.c2w0, anchor)
+            boot.append(f.index)
+            self._apply(sess.push(f))
             i += 1
-            if fe.failed:
+            if poses.failed:
                 break
-        if not fe.initialized:
-            self.notes.append(f"monocular bootstrap failed after {len(buf)} frames; falling back to the "
+        if not poses.initialized:
+            self.notes.append(f"monocular bootstrap failed after {len(boot)} frames; falling back to the "
                               "map front end (constant-depth guesses)")
-            self.frontend = None
+            self.frontend = self.session = None
             self.run_photometric_map()
             return
-        boot_ms = (time.perf_counter() - t_boot) * 1000 / max(1, len(buf) - 1)
+        boot_ms = (time.perf_counter() - t_boot) * 1000 / max(1, len(boot) - 1)
+        for k in boot:
+            self.track_ms[k] = boot_ms if k else 0.0
         self.init_report = {"frontend": "mono", **fe.init_info, "bootstrap_ms_per_frame": boot_ms}
         if fe.init_info.get("scale_from") == "unit_depth":
             self.anchor = "none"
-        self.mapper = self._new_mapper(cfg.mapper.init_frames)
-        held: dict = {}  # frame index -> (frame, c2w) kept from the mapper until the late anchor fixed the scale
-
-        def add(f, c2w) -> None:
-            self._after_window(self._add_to_mapper(f.index, f.rgb, c2w, f.timestamp, f.depth))
-
-        def release() -> None:  # the scale is fixed: the held frames go to the mapper with their rescaled poses
-            poses = fe.poses_for({i: c2w for i, (_, c2w) in held.items()})
-            for i, (g, _) in held.items():
-                self.est[i] = poses[i]
-                add(g, poses[i])
-            held.clear()
-
-        def feed(f, c2w) -> None:
-            if fe.scale_pending:
-                held[f.index] = (f, c2w)
-                return
-            release()
-            add(f, c2w)
-
-        for f in buf:
-            self.est[f.index] = out[f.index]
-            self.track_ms[f.index] = boot_ms if f.index else 0.0
-            feed(f, out[f.index])
         for i in self._iter(range(i, n), "slam"):
             f = self.ds[i]
             # map depth for new keyframes; the front end uses it only where it agrees with the landmarks
             extra = self.view.depth_fn if self.view is not None else None
-            r = fe.track(i, f.rgb, extra_depth=extra)
+            ups = sess.push(f, extra_depth=extra)
+            r = poses.last
             info = r.to_dict()
             self.track_ms[i] = info["ms"]
             self.track_info[i] = info
@@ -551,12 +540,8 @@ class SlamRun:
             if r.lost:
                 self.loss_events.append({"frame": i, "reason": r.reason, "inlier_ratio": r.inlier_ratio,
                                          "reference": r.reference})
-            if not r.lost or cfg.feed_lost_frames:
-                feed(f, r.c2w)
-            if r.need_keyframe and cfg.mapper_follows_ba:
-                self._push_refined_poses(fe.refined_poses())
-        fe.settle_scale()  # the sequence ended before the late anchor: the bootstrap's scale stays
-        release()
+            self._apply(ups)
+        self._apply(sess.finish())  # the sequence ended before the late anchor: the bootstrap's scale stays
         # BA-refined poses of every tracked frame
         for k, p in fe.poses().items():
             self.est[k] = p
@@ -566,12 +551,18 @@ class SlamRun:
                                   "rms_after_px_median": float(np.median([b["rms_after_px"] for b in fe.ba_stats]))
                                   if fe.ba_stats else None}
 
-    def _push_refined_poses(self, poses: dict) -> None:
-        """Hand the front end's refined poses (by dataset index) to the mapper (by its frame id) where
-        they moved (:func:`~fmapping.tracking.mono.moved_poses`, as the tracker service republishes)."""
-        moved = moved_poses({i: self.est[i] for i in self.fid_of if i in self.est}, poses)
-        self.pose_updates += self.mapper.set_poses({self.fid_of[i]: p for i, p in moved.items()})
-        self.est.update(moved)
+    def _apply(self, ups) -> None:
+        """The session's pose updates into the run's estimates and counts."""
+        sess = self.session
+        self.mapper, self.fid_of, self.pose_updates = sess.mapper, sess.fid_of, sess.pose_updates
+        for u in ups:  # a pose the mapper took (tracked, released after the late anchor, or refined by the BA)
+            if u.index in self.fid_of:
+                self.est[u.index] = u.c2w
+
+    def _on_window(self, d: dict) -> None:
+        self.mapper = self.session.mapper
+        self.window_stats.append(d)
+        self._after_window(d)
 
     def _after_window(self, win) -> None:
         if win is not None and self.mapper is not None and self.mapper.initialized:
@@ -672,7 +663,7 @@ def _export(run: SlamRun, out: Path) -> dict:
                              center=run.c2w0[:3, 3], scale=run.scale)
 
 
-def run_slam(args, should_stop: StopFn = None) -> dict:
+def run_slam(job: Job, should_stop: StopFn = None) -> dict:
     """Run the SLAM loop (see the module docstring); returns the stats dict with a ``summary``.
     ``should_stop()`` True ends it early: the frames so far are written, without the closing
     optimisation (``summary["stopped_at"]``: the first frame not processed)."""
@@ -681,12 +672,12 @@ def run_slam(args, should_stop: StopFn = None) -> dict:
     from fmapping.trajectory import write_tum_trajectory
 
     t_start = time.perf_counter()
-    ds = open_job_dataset(args)
-    cfg = build_slam_config(args)
-    poses_mode = getattr(args, "poses", "photometric") or "photometric"
-    out = Path(args.out)
+    ds = open_job_dataset(job)
+    cfg = build_slam_config(job)
+    poses_mode = job.poses or "photometric"
+    out = Path(job.out)
     out.mkdir(parents=True, exist_ok=True)
-    run = SlamRun(ds, cfg, poses_mode, out, progress=not getattr(args, "quiet", False), should_stop=should_stop)
+    run = SlamRun(ds, cfg, poses_mode, out, progress=not job.quiet, should_stop=should_stop)
     run.run()
     t_loop = time.perf_counter() - t_start
     est = run.output_poses()

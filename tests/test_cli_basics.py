@@ -259,6 +259,7 @@ def test_data_help_lists_the_sources_and_fps_topic_reach_the_dataset(tmp_path, c
     import argparse
 
     from fmapping.cli import build_parser, main
+    from fmapping.job import Job
     from fmapping.pipeline import open_job_dataset
 
     parser = build_parser()
@@ -277,8 +278,10 @@ def test_data_help_lists_the_sources_and_fps_topic_reach_the_dataset(tmp_path, c
     assert (a.fps, a.data_fps, a.topic) == (5.0, 12.5, "/cam/image_raw")
 
     images = _image_folder(tmp_path / "imgs")
-    ds = open_job_dataset(argparse.Namespace(data=str(images), camera="30,30,16,12", max_frames=None, data_fps=10.0,
-                                             topic=None))
+    job = Job.from_args(parser.parse_args(["map", "--data", str(images), "--camera", "30,30,16,12", "--fps", "10",
+                                           "--out", str(tmp_path / "o")]), poses="gt")
+    assert (job.data_fps, job.topic, job.camera) == (10.0, None, "30,30,16,12")
+    ds = open_job_dataset(job)
     assert [round(t, 6) for t in ds.timestamps] == [0.0, 0.1, 0.2]
     capsys.readouterr()
     assert main(["info", "--data", str(images), "--camera", "30,30,16,12", "--fps", "10"]) == 0

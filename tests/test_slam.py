@@ -1,10 +1,10 @@
 """The SLAM loop (fmapping.slam.run_slam) end to end on a small synthetic scene."""
-import argparse
 import json
 
 import numpy as np
 import pytest
 
+from fmapping.job import Job
 from fmapping.trajectory import read_tum_trajectory
 
 TINY = """
@@ -30,11 +30,8 @@ def scene(room320, tmp_path_factory):
 
 
 def _args(data, out, cfg, **kw):
-    a = argparse.Namespace(data=str(data), out=str(out), config=str(cfg), poses="photometric", use_depth=False,
-                           device="cpu", camera=None, max_frames=None, export=False, quiet=True)
-    for k, v in kw.items():
-        setattr(a, k, v)
-    return a
+    return Job(**{"data": str(data), "out": str(out), "config": str(cfg), "poses": "photometric", "device": "cpu",
+                  "export": False, "quiet": True, **kw})
 
 
 def test_slam_rgb_only_end_to_end(scene, tmp_path, monkeypatch):
@@ -257,8 +254,7 @@ def test_map_job_writes_outputs_and_scores_the_cloud(scene, tmp_path, monkeypatc
     cfg = tmp_path / "map.yaml"
     cfg.write_text(textwrap.dedent(TINY.replace("mapper:\n", "")))
     out = tmp_path / "map"
-    args = argparse.Namespace(data=str(root), out=str(out), config=str(cfg), poses="gt", field=None,
-                              use_depth=False, device="cpu", camera=None, max_frames=12, quiet=True)
+    args = Job(data=str(root), out=str(out), config=str(cfg), poses="gt", device="cpu", max_frames=12, quiet=True)
     stats = pipeline.run_map(args)
     s = json.loads((out / "stats.json").read_text())["summary"]
     assert s == json.loads(json.dumps(stats["summary"]))
@@ -292,8 +288,7 @@ def test_map_job_stopped_on_request_exports_the_map_so_far(scene, tmp_path, monk
         monkeypatch.setattr(pipeline, "open_job_dataset", lambda a: watched.append(_Watched(real_open(a))) or watched[-1])
         out = tmp_path / f"map{last}"
         seen.clear()
-        args = argparse.Namespace(data=str(root), out=str(out), config=str(cfg), poses="gt", field=None,
-                                  use_depth=False, device="cpu", camera=None, max_frames=None, quiet=True)
+        args = Job(data=str(root), out=str(out), config=str(cfg), poses="gt", device="cpu", quiet=True)
         s = pipeline.run_map(args, should_stop=lambda: watched[0].highest >= last)["summary"]
         assert s["stopped_at"] == want_frames and s["frames"] == want_frames
         assert json.loads((out / "stats.json").read_text())["summary"]["stopped_at"] == want_frames

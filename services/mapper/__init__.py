@@ -1,6 +1,6 @@
 """Mapper service core (zenoh-free): frames + poses in, field / points snapshots out.
 
-:class:`MapperCore` owns a :class:`fmapping.mapper.Mapper`. The shell
+:class:`MapperCore` owns a :class:`fmapping.mapping.Mapper`. The shell
 (``python -m services.mapper``) feeds it raw payloads from the bus; the core decodes
 them (:mod:`fmapping.protocol`), matches frames and poses by frame number ``seq``, adds
 frames to the mapper in order and returns the messages to publish:
@@ -42,6 +42,7 @@ import numpy as np
 
 from fmapping import protocol as P
 from fmapping.fileio import atomic_open, write_json
+from fmapping.map_outputs import map_mesh, map_points
 from services.common import ServiceCore, rigid_pose
 
 log = logging.getLogger("fmapping.mapper")
@@ -562,74 +563,6 @@ class MapperCore(ServiceCore):
         if mapper.field is not None:
             self.field_snapshot(bump=False)
         return True
-
-
-# ---------------------------------------------------------------------------- map export
-def map_points(mapper, max_points: int, final: bool = False, quick: bool = False,
-               seed: int = 0, should_stop=None) -> tuple[np.ndarray, np.ndarray]:
-    """Coloured points of the map (:func:`fmapping.export.export_point_cloud`), at most ``max_points``.
-
-    Live snapshots render up to 6 keyframes at <= 64 px width (cheap; ``quick``: 4 at 48 px,
-    for stopping on a signal); ``final`` renders every keyframe at full resolution (stride 2)
-    with the input images for colour. Returns float32 (N, 3), uint8 (N, 3)."""
-    from fmapping.export import export_point_cloud
-
-    cfg = mapper.cfg
-    poses = mapper.frame_poses()
-    ids = mapper.keyframe_ids() or sorted(poses)
-    cam = mapper.camera
-    images = None
-    check_views = 8
-    if final:
-        stride, voxel = 2, 0.02
-        try:
-            images = {i: mapper.keyframe_image(i) for i in ids}
-        except KeyError:
-            images = None
-    else:
-        views, width = (4, 48.0) if quick else (6, 64.0)
-        if len(ids) > views:
-            ids = [ids[int(round(i))] for i in np.linspace(0, len(ids) - 1, views)]
-        scale = min(1.0, width / cam.width)
-        cam = cam.scaled(scale) if scale < 1.0 else cam
-        stride, voxel, check_views = 1, 0.03, views - 1
-    pts, cols = export_point_cloud(mapper, {i: poses[i] for i in ids}, cam, images=images, stride=stride,
-                                   voxel=voxel, near=cfg.near, far=cfg.far, n_samples=cfg.n_coarse,
-                                   n_importance=cfg.n_fine, check_views=max(1, check_views),
-                                   should_stop=should_stop)
-    return _bounded(np.asarray(pts, np.float32).reshape(-1, 3), np.asarray(cols).reshape(-1, 3), max_points, seed)
-
-
-def map_mesh(mapper, resolution: int = 96, should_stop=None):
-    """(vertices, faces, colours) by marching cubes (:func:`fmapping.export.export_mesh`), culled to
-    what the keyframes saw."""
-    from fmapping.export import export_mesh
-
-    cfg = mapper.cfg
-    poses = mapper.frame_poses()
-    ids = mapper.keyframe_ids() or sorted(poses)
-
-    def render(c2w, cam):
-        r = mapper.render(c2w, cam, samples=(cfg.n_coarse, cfg.n_fine))
-        acc = r["acc"]
-        return {"rgb": r["rgb"], "acc": acc, "depth": np.where(acc > 1e-6, r["depth"] / np.maximum(acc, 1e-6), 0.0)}
-
-    v, f, c = export_mesh(mapper.field, mapper.aabb, resolution, {i: poses[i] for i in ids}, mapper.camera,
-                          render=render, near=cfg.near, far=cfg.far, should_stop=should_stop)
-    return np.asarray(v), np.asarray(f), np.asarray(c)
-
-
-def _bounded(pts: np.ndarray, cols: np.ndarray, max_points: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    cols = np.asarray(cols)
-    if cols.dtype != np.uint8:
-        cols = np.clip(np.round(cols * 255 if cols.max(initial=0) <= 1.0 else cols), 0, 255).astype(np.uint8)
-    ok = np.isfinite(pts).all(1)
-    pts, cols = pts[ok], cols[ok]
-    limit = min(int(max_points), P.MAX_POINTS)
-    if len(pts) > limit:
-        idx = np.sort(np.random.default_rng(seed).choice(len(pts), limit, replace=False))
-        pts, cols = pts[idx], cols[idx]
-    return np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(cols.reshape(-1, 3), np.uint8)
 
 
 def load_mapper_config(path=None, overrides: Optional[dict] = None):

@@ -118,12 +118,8 @@ class TrackerCore(ServiceCore):
         self.cfg = cfg if cfg is not None else TrackerConfig()
         self.mono_cfg = mono_cfg  # MonoConfig of the mono front end (None: its defaults)
         self.opts = (opts or TrackerServiceOptions()).validate()
-        self.mono = None  # MonoFrontend (frontend "mono")
+        self.session = None  # PoseSession of the mono front end (frontend "mono"): the pose policy
         self.anchors: dict[int, np.ndarray] = {}  # anchor poses of the frames the bootstrap may still use
-        self._boot_stamps: dict[int, float] = {}  # frames held by the bootstrap -> timestamp
-        self._held: list = []  # (seq, stamp, c2w, quality) answered while the late anchor is pending
-        self._c2w0: Optional[np.ndarray] = None  # world pose of the bootstrap's first frame
-        self._first_anchored: Optional[np.ndarray] = None  # its anchor pose (None: no anchor)
         self.camera = None
         self.tracker = None
         self.field = None
@@ -150,6 +146,11 @@ class TrackerCore(ServiceCore):
     def ack(self) -> int:
         return self.last_seq
 
+    @property
+    def mono(self):
+        """The mono front end (MonoFrontend) of the session, None before the first frame."""
+        return None if self.session is None else self.session.frontend
+
     # ------------------------------------------------------------ inputs
     def apply(self, msg) -> list[Output]:
         if isinstance(msg, P.Frame):
@@ -162,7 +163,9 @@ class TrackerCore(ServiceCore):
             if msg.command == "reset":
                 self.reset()
             elif msg.command == "stop":
-                return self._release_held(settle=True)  # the stream ended: nothing stays unanswered
+                if self.session is None:  # the stream ended: nothing stays unanswered
+                    return []
+                return self._publish(self.session.finish("the stream stopped before it"))
             return []
         raise ValueError(f"TrackerCore: unexpected message {type(msg).__name__}")
 
@@ -179,7 +182,7 @@ class TrackerCore(ServiceCore):
                 return []
         if f.seq <= self.last_seq and f.seq not in self.waiting:
             return self._answer_again(f)
-        if f.seq in self.waiting or f.seq in self._boot_stamps or any(h[0] == f.seq for h in self._held):
+        if f.seq in self.waiting or (self.session is not None and self.session.holds(f.seq)):
             self.counters.inc("stale_frames")  # e.g. sent again while the bootstrap or the late anchor holds it
             return []
         self.took_frame(f.seq)
@@ -295,11 +298,8 @@ class TrackerCore(ServiceCore):
         self.ref_seq = -1
         self._ref_target = None
         self._motion_seq = -1
-        self.mono = None
+        self.session = None
         self.anchors.clear()
-        self._boot_stamps.clear()
-        self._held.clear()
-        self._c2w0 = self._first_anchored = None
         self.counters.inc("resets")
 
     def _set_camera(self, cam: dict) -> None:
@@ -314,23 +314,19 @@ class TrackerCore(ServiceCore):
 
     # ------------------------------------------------------------ mono front end
     def _new_mono(self) -> None:
-        from fmapping.tracking.mono import MonoFrontend
+        from fmapping.session import PoseSession, SessionConfig
 
-        self.mono = MonoFrontend(self.camera, self.cfg, self.mono_cfg)
-        self._c2w0 = self._first_anchored = None
-        self._boot_stamps.clear()
+        o = self.opts
+        policy = SessionConfig(republish=o.republish, republish_min_m=o.republish_min_m,
+                               republish_min_deg=o.republish_min_deg, restart_failed_bootstrap=True,
+                               max_poses=o.max_poses)
+        self.session = PoseSession(self.camera, self.cfg, self.mono_cfg, policy, anchors=self.anchors)
 
     def _on_anchor(self, p: P.Pose) -> list[Output]:
         done = self.mono is not None and self.mono.initialized and not self.mono.scale_pending
         if done or p.seq <= self.last_seq:
             return []
         return self._remember(self.anchors, p, "anchor_poses")
-
-    def _anchor_baseline(self, seq: int) -> Optional[float]:
-        a = self.anchors.get(seq)
-        if a is None or self._first_anchored is None:
-            return None
-        return float(np.linalg.norm(a[:3, 3] - self._first_anchored[:3, 3]))
 
     def _extra_depth(self):
         """Depth rendered from the map we hold, for new keyframes (None before the first snapshot);
@@ -354,9 +350,9 @@ class TrackerCore(ServiceCore):
         and go on from there in their world frame and scale; after ``resume_tries`` misses, bootstrap
         anew (the frames missed are answered with ``quality = 0``)."""
         t0 = time.perf_counter()
-        c2w = self.mono.resume(seq, np.asarray(f.rgb), self.resume_state)
+        ups = self.session.resume(seq, np.asarray(f.rgb), f.timestamp, self.resume_state)
         self.counters.set("track_ms", round((time.perf_counter() - t0) * 1e3, 2))
-        if c2w is None:
+        if ups is None:
             self.counters.inc("resume_misses")
             if self.counters.get("resume_misses") >= self.opts.resume_tries:
                 self.resume_state = None
@@ -369,7 +365,7 @@ class TrackerCore(ServiceCore):
         self.counters.set("resume_points", int(self.mono.init_info.get("points", 0)))
         self.counters.inc("frames_tracked")
         self._save_state()
-        return self._publish_mono(seq, f.timestamp, c2w, 1.0)
+        return self._publish(ups)
 
     def _resume_fits(self) -> bool:
         """Are there saved keyframes to re-localise against, of the frames' size? (A misfit is dropped.)"""
@@ -396,97 +392,64 @@ class TrackerCore(ServiceCore):
 
     def _advance_mono(self) -> list[Output]:
         out: list[Output] = []
-        fe = self.mono
+        sess = self.session
         while self.waiting:
             seq, f = next(iter(self.waiting.items()))
-            if not fe.initialized and self._resume_fits():
+            if not sess.initialized and self._resume_fits():
                 self.waiting.popitem(last=False)
                 out += self._resume_mono(seq, f)
                 continue
-            if not fe.initialized:
+            if not sess.initialized:
                 if self.anchors and seq not in self.anchors and len(self.waiting) <= self.opts.anchor_wait:
                     break  # anchors flow: this frame's is on its way
                 self.waiting.popitem(last=False)
-                if self._c2w0 is None:
-                    self._first_anchored = self.anchors.get(seq)
-                    self._c2w0 = self._first_anchored if self._first_anchored is not None else np.eye(4)
-                self._boot_stamps[seq] = f.timestamp
+                failures = sess.bootstrap_failures
                 t0 = time.perf_counter()
-                poses = fe.bootstrap(seq, np.asarray(f.rgb), self._c2w0, self._anchor_baseline)
+                ups = sess.push(seq, np.asarray(f.rgb), f.timestamp)
                 self.counters.set("track_ms", round((time.perf_counter() - t0) * 1e3, 2))
-                if fe.failed:
+                if sess.bootstrap_failures > failures:
                     self.counters.inc("bootstrap_failures")
                     self.last_error = f"monocular bootstrap failed at frame {seq}; restarting at the next frame"
-                    for s in sorted(self._boot_stamps):
-                        out.append(self._skip(s, self._boot_stamps[s]))
-                    self._new_mono()
-                    fe = self.mono
+                    out += self._publish(ups)
                     continue
-                if poses is not None:
+                if sess.initialized:
                     self.counters.set("bootstrap_frame", seq)
-                    self.counters.set("bootstrap_anchored", int(fe.init_info.get("scale_from") == "anchor"))
-                    for s in sorted(poses):
-                        self.counters.inc("frames_tracked")
-                        out += self._publish_mono(s, self._boot_stamps.get(s, 0.0), poses[s], 1.0)
-                    self._boot_stamps.clear()
-                    out += self._release_held()
+                    anchored = sess.frontend.init_info.get("scale_from") == "anchor"
+                    self.counters.set("bootstrap_anchored", int(anchored))
+                    self.counters.inc("frames_tracked", len(sess.bootstrapped))
+                    out += self._publish(ups)
                     self._save_state()
                 continue
             self.waiting.popitem(last=False)
-            res = fe.track(seq, np.asarray(f.rgb), extra_depth=self._extra_depth())
-            out += self._release_held()  # the late anchor may have fixed the scale with this frame
-            out += self._answer(f, res)
-            if res.need_keyframe and not res.lost and self.opts.republish:
-                out += self._republish_refined()
+            ups = sess.push(seq, np.asarray(f.rgb), f.timestamp, extra_depth=self._extra_depth())
+            self._count(f, sess.last)
+            out += self._publish(ups)
             self._save_state()
-            self.counters.set("loop_closures", len(fe.loops))
+            self.counters.set("loop_closures", len(sess.frontend.loops))
         self.counters.set("waiting_frames", len(self.waiting))
         return out
 
-    def _publish_mono(self, seq: int, stamp: float, c2w: np.ndarray, quality: float) -> list[Output]:
-        """Publish a mono pose, or hold it while the front end waits for its late anchor: nothing
-        leaves at a scale that is about to change (a mapper would have integrated it)."""
-        if self.mono is not None and self.mono.scale_pending:
-            self._held.append((seq, stamp, np.array(c2w), quality))
-            return []
-        if quality > 0:
-            self._keep_own(seq, c2w, stamp, quality)
-        return self._emit(seq, stamp, c2w, quality)
-
-    def _release_held(self, settle: bool = False) -> list[Output]:
-        """Once the scale is fixed (or ``settle``: given up), the held poses, as the front end has them now."""
-        fe = self.mono
-        if fe is None or (fe.scale_pending and not settle):
-            return []
-        if fe.scale_pending:
-            fe.settle_scale("the stream stopped before it")
-        if not self._held and not self.anchors:
-            return []  # released before (the usual case: every frame after the late anchor)
-        self.anchors.clear()
-        if fe.late_anchor is not None:
-            self.counters.set("late_anchor_factor", round(float(fe.late_anchor["factor"]), 6))
-        held, self._held = self._held, []
-        now = fe.poses_for({seq: c2w for seq, _, c2w, quality in held if quality > 0})  # lost ones: as they were
+    def _publish(self, ups: list) -> list[Output]:
+        """The session's pose updates as messages: a refined pose goes out again under its frame's number
+        ("republished"), a skipped frame with ``quality = 0``, the rest in order (:meth:`_emit`)."""
         out: list[Output] = []
-        for seq, stamp, c2w, quality in held:
-            out += self._publish_mono(seq, stamp, now.get(seq, c2w), quality)
-        return out
-
-    def _republish_refined(self) -> list[Output]:
-        """Poses of frames already answered that the front end's bundle adjustment has moved
-        (by more than ``republish_min_m`` / ``republish_min_deg``), published again."""
-        from fmapping.tracking.mono import moved_poses
-
-        out: list[Output] = []
-        refined = self.mono.refined_poses()
-        held = {s: self.own_poses[s].c2w for s in refined if s in self.own_poses}
-        moved = moved_poses(held, refined, self.opts.republish_min_m, self.opts.republish_min_deg)
-        for s, c2w in sorted(moved.items()):
-            was = self.own_poses[s]
-            self.own_poses[s] = was._replace(c2w=np.array(c2w))
-            self.counters.inc("republished")
-            out.append(("poses", P.Pose(seq=s, timestamp=was.timestamp, c2w=rigid_pose(c2w), source="tracker",
-                                        quality=was.quality)))
+        for u in ups:
+            if u.kind == "skipped":
+                out.append(self._skip(u.index, u.timestamp))
+            elif u.kind == "refined":
+                was = self.own_poses.get(u.index)
+                if was is not None:
+                    self.own_poses[u.index] = was._replace(c2w=np.array(u.c2w))
+                self.counters.inc("republished")
+                out.append(("poses", P.Pose(seq=u.index, timestamp=u.timestamp, c2w=rigid_pose(u.c2w),
+                                            source="tracker", quality=u.quality)))
+            else:
+                if u.quality > 0:
+                    self._keep_own(u.index, u.c2w, u.timestamp, u.quality)
+                out += self._emit(u.index, u.timestamp, u.c2w, u.quality)
+        la = self.mono.late_anchor if self.mono is not None else None
+        if la is not None and not self.anchors:
+            self.counters.set("late_anchor_factor", round(float(la["factor"]), 6))
         return out
 
     def _keep_own(self, seq: int, c2w: np.ndarray, stamp: float, quality: float) -> None:
@@ -669,23 +632,25 @@ class TrackerCore(ServiceCore):
             self._make_reference(f.seq)
         return out
 
-    def _answer(self, f: P.Frame, res) -> list[Output]:
-        """Count a tracking result and publish its pose (``quality = 0`` when lost)."""
+    def _count(self, f: P.Frame, res) -> float:
+        """Count a tracking result; its pose's quality (0 when lost)."""
         self.counters.inc("frames_tracked")
         self.counters.set("track_ms", round(res.ms, 2))
         self.last_track = res.to_dict()
         if res.lost:
             self.counters.inc("frames_lost")
             self.last_error = f"frame {f.seq} lost: {res.reason}"
-            if self.opts.frontend == "mono":
-                return self._publish_mono(f.seq, f.timestamp, res.c2w, 0.0)
-            return self._emit(f.seq, f.timestamp, res.c2w, 0.0)
+            return 0.0
         if res.relocalised:
             self.counters.inc("relocalised")
-        quality = float(max(res.inlier_ratio, 1e-6))
         self._motion_seq = f.seq
-        if self.opts.frontend == "mono":
-            return self._publish_mono(f.seq, f.timestamp, res.c2w, quality)
+        return float(max(res.inlier_ratio, 1e-6))
+
+    def _answer(self, f: P.Frame, res) -> list[Output]:
+        """Count a tracking result of the map front end and publish its pose (``quality = 0`` when lost)."""
+        quality = self._count(f, res)
+        if quality <= 0:
+            return self._emit(f.seq, f.timestamp, res.c2w, 0.0)
         self._keep_own(f.seq, res.c2w, f.timestamp, quality)
         return self._emit(f.seq, f.timestamp, res.c2w, quality)
 

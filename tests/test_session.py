@@ -1,0 +1,151 @@
+"""The incremental session (fmapping.session): the front end's pose policy, and the drivers that use it."""
+import numpy as np
+import pytest
+
+from fmapping import protocol as P
+
+
+@pytest.fixture(scope="module")
+def room(room320):
+    from fmapping.datasets import open_dataset
+
+    return open_dataset(room320)
+
+
+def _anchored_session(ds, **policy):
+    from fmapping.session import PoseSession, SessionConfig
+    from fmapping.tracking.frontend import TrackerConfig
+
+    return PoseSession(ds.camera, TrackerConfig(), None, SessionConfig(**policy))
+
+
+def _run(sess, ds, anchors=True):
+    """Push every frame (its GT pose given as anchor first, as io play sends it): the updates per push."""
+    per_push = []
+    for i in range(len(ds)):
+        f = ds[i]
+        if anchors:
+            sess.add_anchor(i, f.c2w)
+        per_push.append(sess.push(i, f.rgb, f.timestamp))
+    per_push.append(sess.finish())
+    return per_push
+
+
+def test_pose_session_buffers_the_bootstrap_and_holds_until_the_late_anchor(room):
+    """Nothing leaves before the late anchor at frame 14; then frames 0-14 leave in order at the fixed
+    scale, and every later push gives its own frame first, then only refined poses of frames given before
+    that moved by more than the thresholds."""
+    from fmapping.metrics import ate
+    from fmapping.tracking.direct import pose_distance
+
+    sess = _anchored_session(room, restart_failed_bootstrap=True)
+    per_push = _run(sess, room)
+    n = len(room)
+    assert all(ups == [] for ups in per_push[:14])
+    assert [u.index for u in per_push[14]] == list(range(15)) and all(u.kind == "tracked" for u in per_push[14])
+    assert sess.frontend.late_anchor["frame"] == 14
+    given = {u.index: u for u in per_push[14]}
+    refined = 0
+    for i in range(15, n):
+        ups = per_push[i]
+        assert ups[0].index == i and ups[0].kind in ("tracked", "lost")
+        given[i] = ups[0]
+        for u in ups[1:]:  # the BA of a new keyframe may move it too
+            assert u.kind == "refined" and u.index in given
+            dt, dr = pose_distance(given[u.index].c2w, u.c2w)
+            assert dt > 1e-3 or dr > 0.05  # moved enough to be worth sending
+            assert (u.timestamp, u.quality) == (given[u.index].timestamp, given[u.index].quality)
+            given[u.index] = u
+            refined += 1
+    assert refined > 0 and per_push[-1] == []  # nothing was held at the end
+    est = np.stack([given[k].c2w for k in range(n)])
+    gt = np.stack([room[k].c2w for k in range(n)])
+    assert ate(est, gt, "none")["rmse_m"] < 0.02  # GT world frame and scale from the anchors
+
+
+def test_pose_session_finish_releases_what_the_late_anchor_held(room):
+    """A stream that ends before frame 14: ``finish`` gives the held frames at the bootstrap's scale."""
+    sess = _anchored_session(room)
+    for i in range(11):
+        sess.add_anchor(i, room[i].c2w)
+        assert sess.push(i, room[i].rgb, room[i].timestamp) == []
+    assert sess.initialized and sess.scale_pending and sess.holds(10) and not sess.holds(11)
+    out = sess.finish("stopped")
+    assert [u.index for u in out] == list(range(11)) and all(u.usable for u in out)
+    assert sess.frontend.late_anchor == {"frame": None, "factor": 1.0, "refused": "stopped"}
+    np.testing.assert_allclose(out[0].c2w, room[0].c2w, atol=1e-9)
+    assert sess.finish() == []
+
+
+def test_the_tracker_service_publishes_exactly_the_session_updates(room):
+    """TrackerCore (mono) is a thin shell: its pose messages are the session's updates, in order."""
+    from services.tracker import TrackerCore
+
+    core = TrackerCore()
+    msgs = []
+    for i in range(len(room)):
+        f = room[i]
+        core.handle("poses", P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
+        msgs += [m for _, m in core.handle("frames", P.encode(P.frame_from_dataset(f, seq=i)))]
+    msgs += [m for _, m in core.handle("control", P.encode(P.Control(command="stop")))]
+    sess = _anchored_session(room, restart_failed_bootstrap=True, max_poses=4096)
+    ups = [u for push in _run(sess, room) for u in push]
+    assert [m.seq for m in msgs] == [u.index for u in ups]
+    for m, u in zip(msgs, ups):
+        np.testing.assert_allclose(m.c2w, u.c2w, atol=1e-9)  # the wire keeps float64 rotations orthonormal
+        assert m.quality == pytest.approx(u.quality) and m.timestamp == pytest.approx(u.timestamp)
+    assert core.counters.get("republished") == sum(u.kind == "refined" for u in ups) > 0
+
+
+class _RecordingMapper:
+    """Records what a SlamSession integrates; a window every ``every`` frames."""
+
+    def __init__(self, every=5):
+        self.added, self.moved, self.every = [], [], every
+
+    def add_frame(self, rgb, c2w, ts, depth):
+        self.added.append((ts, np.array(c2w)))
+        if len(self.added) % self.every:
+            return None
+
+        class _Stats:
+            def to_dict(s):
+                return {"kind": "window", "frames": len(self.added)}
+        return _Stats()
+
+    def set_poses(self, poses):
+        self.moved.append(dict(poses))
+        return len(poses)
+
+
+def test_slam_session_integrates_each_released_frame_once_and_moves_refined_poses(room):
+    """Every usable released pose reaches the mapper once, with its frame, in release order; a refined
+    pose moves the mapper's copy of that frame (by its mapper id); windows are reported with the frame
+    that completed them."""
+    from fmapping.session import SlamSession
+
+    poses = _anchored_session(room)
+    m = _RecordingMapper()
+    seen = []
+    sess = SlamSession(poses, lambda: m, on_window=seen.append)
+    released = []
+    for i in range(len(room)):
+        poses.add_anchor(i, room[i].c2w)
+        released += sess.push(room[i])
+    released += sess.finish()
+    first = [u for u in released if u.kind != "refined" and u.usable]
+    assert [ts for ts, _ in m.added] == [u.timestamp for u in first]
+    assert list(sess.fid_of) == [u.index for u in first] and list(sess.fid_of.values()) == list(range(len(first)))
+    for (_, c2w), u in zip(m.added, first):
+        np.testing.assert_allclose(c2w, u.c2w, atol=0)
+    moved = {sess.fid_of[u.index]: u.c2w for u in released if u.kind == "refined"}
+    assert moved and sess.pose_updates == sum(len(d) for d in m.moved)
+    got = {}
+    for d in m.moved:
+        got.update(d)
+    assert set(got) == set(moved)
+    for k in moved:
+        np.testing.assert_allclose(got[k], moved[k], atol=0)  # the newest refined pose of each frame
+    wins = sess.map_updates()
+    assert wins == seen and [w["frames"] for w in wins] == list(range(5, len(first) + 1, 5))
+    assert all(w["after_frame"] in sess.fid_of for w in wins) and sess.map_updates() == []
