@@ -183,7 +183,7 @@ def loop_capture():
     the old keyframe's pose and the loop's ``LoopMatch.c2w`` give keyframe -> frame as the images saw
     it. Yields the list it fills (None when the method is not there any more)."""
     from fmapping.tracking import mono
-    from fmapping.tracking.direct import inv_pose
+    from fmapping.geometry import inv_pose
 
     cls = mono.MonoFrontend
     orig = cls.__dict__.get("_correct_loop")
@@ -216,7 +216,7 @@ def check_loops(loops: list, captured: Optional[list], est: np.ndarray, gt: list
     trajectory). Translations are compared after the trajectory's Sim3 scale ``sim3_scale``; the front
     end's own poses are first multiplied by ``output_scale`` (its units -> the written trajectory's).
     A loop is contradicted when its relative pose is off by > LOOP_MAX_M or > LOOP_MAX_DEG."""
-    from fmapping.tracking.direct import inv_pose
+    from fmapping.geometry import inv_pose
 
     cap = {(c["keyframe"], c["frame"]): c for c in (captured or []) if "loop_rel" in c}
     out, bad = [], 0

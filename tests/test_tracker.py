@@ -6,12 +6,11 @@ import pytest
 import torch
 
 from fmapping.camera import PinholeCamera
-from fmapping.geometry import se3_exp
-from fmapping.tracking.direct import (
-    AlignConfig, align, bilinear, build_pyramid, exp_se3, inv_pose, make_reference, orthonormalize,
-    pose_distance, select_pixels, to_gray, warp_residuals, with_gradients,
+from fmapping.geometry import inv_pose, orthonormalize, pose_distance, se3_exp, se3_exp_np
+from fmapping.tracking.direct_align import (
+    AlignConfig, align, bilinear, build_pyramid, make_reference, select_pixels, to_gray, warp_residuals, with_gradients,
 )
-from fmapping.tracking.frontend import DirectTracker, TrackerConfig
+from fmapping.tracking.direct_tracker import DirectTracker, TrackerConfig
 
 
 # ----------------------------------------------------------------------------- fixtures
@@ -26,7 +25,7 @@ def scene_pair():
     axis = np.array([0.3, -0.8, 0.5]) / np.linalg.norm([0.3, -0.8, 0.5])
     tdir = np.array([1.0, 0.4, -0.3]) / np.linalg.norm([1.0, 0.4, -0.3])
     delta = np.concatenate([0.02 * tdir, math.radians(1.0) * axis])
-    c2w1 = c2w0 @ exp_se3(delta)  # offset in the camera frame of view 0
+    c2w1 = c2w0 @ se3_exp_np(delta)  # offset in the camera frame of view 0
     rgb0, d0 = render_view(scene, cam, c2w0)
     rgb1, d1 = render_view(scene, cam, c2w1)
     return cam, c2w0, c2w1, rgb0, d0, rgb1, d1
@@ -38,16 +37,16 @@ def _linear_image(h, w, a=0.003, b=-0.002, c=0.4):
 
 
 # ----------------------------------------------------------------------------- small pieces
-def test_exp_se3_matches_geometry():
+def test_se3_exp_np_matches_geometry():
     rng = np.random.default_rng(0)
     for scale in (0.0, 1e-7, 1e-3, 0.3, 2.5):
         xi = rng.normal(size=6) * scale
         ref = se3_exp(torch.as_tensor(xi)).numpy()
-        np.testing.assert_allclose(exp_se3(xi), ref, atol=1e-12)
+        np.testing.assert_allclose(se3_exp_np(xi), ref, atol=1e-12)
 
 
 def test_orthonormalize_projects_to_rotation():
-    t = exp_se3(np.array([0.1, 0.2, 0.3, 0.4, -0.2, 0.1]))
+    t = se3_exp_np(np.array([0.1, 0.2, 0.3, 0.4, -0.2, 0.1]))
     noisy = t.copy()
     noisy[:3, :3] *= 1.001
     out = orthonormalize(noisy)
@@ -95,7 +94,7 @@ def test_jacobian_exact_on_linear_image(affine):
     z = rng.uniform(1.0, 3.0, n)
     pts = np.stack([(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z], -1)
     iref = rng.uniform(0, 1, n).astype(np.float32)
-    t = exp_se3(np.array([0.03, -0.02, 0.01, 0.02, -0.01, 0.015]))
+    t = se3_exp_np(np.array([0.03, -0.02, 0.01, 0.02, -0.01, 0.015]))
     ab = np.array(affine)
     r, jac, valid = warp_residuals(lvl, cam, pts, iref, t, ab)
     assert valid.all()
@@ -107,7 +106,7 @@ def test_jacobian_exact_on_linear_image(affine):
 
         def f(sign):
             dd = sign * d
-            return warp_residuals(lvl, cam, pts, iref, exp_se3(dd[:6]) @ t, ab + dd[6:], with_jacobian=False)[0]
+            return warp_residuals(lvl, cam, pts, iref, se3_exp_np(dd[:6]) @ t, ab + dd[6:], with_jacobian=False)[0]
         num[:, k] = (f(1) - f(-1)) / (2 * eps)
     np.testing.assert_allclose(jac, num, rtol=1e-5, atol=1e-6)
 
@@ -124,14 +123,14 @@ def test_jacobian_close_on_smooth_image():
     uv = np.stack([rng.uniform(40, 120, n), rng.uniform(30, 90, n)], -1)
     z = rng.uniform(1.0, 3.0, n)
     pts = np.stack([(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z], -1)
-    t = exp_se3(np.array([0.02, 0.01, -0.01, -0.01, 0.02, 0.0]))
+    t = se3_exp_np(np.array([0.02, 0.01, -0.01, -0.01, 0.02, 0.0]))
     r, jac, _ = warp_residuals(lvl, cam, pts, np.zeros(n, np.float32), t, np.zeros(2))
     eps = 1e-4
     for k in range(6):
         d = np.zeros(6)
         d[k] = eps
-        fp = warp_residuals(lvl, cam, pts, np.zeros(n, np.float32), exp_se3(d) @ t, np.zeros(2), False)[0]
-        fm = warp_residuals(lvl, cam, pts, np.zeros(n, np.float32), exp_se3(-d) @ t, np.zeros(2), False)[0]
+        fp = warp_residuals(lvl, cam, pts, np.zeros(n, np.float32), se3_exp_np(d) @ t, np.zeros(2), False)[0]
+        fm = warp_residuals(lvl, cam, pts, np.zeros(n, np.float32), se3_exp_np(-d) @ t, np.zeros(2), False)[0]
         num = (fp - fm) / (2 * eps)
         rel = np.linalg.norm(jac[:, k] - num) / np.linalg.norm(num)
         assert rel < 0.06, (k, rel)
@@ -198,7 +197,7 @@ def test_poses_from_file_matches_and_reports_missing(tmp_path):
     from fmapping.tracking.sources import poses_from_file
     from fmapping.trajectory import write_tum_trajectory
 
-    poses = np.stack([exp_se3(np.array([0.1 * i, 0, 0, 0, 0.01 * i, 0])) for i in range(5)])
+    poses = np.stack([se3_exp_np(np.array([0.1 * i, 0, 0, 0, 0.01 * i, 0])) for i in range(5)])
     ts = np.arange(5) * 0.1
     write_tum_trajectory(tmp_path / "t.txt", ts, poses)
     got = poses_from_file(tmp_path / "t.txt", ts + 0.001)
@@ -239,7 +238,7 @@ def test_kiss_icp_recovers_motion_of_a_box_room():
         return best.astype(np.float32)
 
     odo = KissIcpOdometry(cam, KissIcpConfig(voxel_size=0.05, stride=1))
-    poses = [exp_se3(np.array([0.02 * i, 0.0, 0.015 * i, 0.0, 0.0, 0.0])) for i in range(8)]
+    poses = [se3_exp_np(np.array([0.02 * i, 0.0, 0.015 * i, 0.0, 0.0, 0.0])) for i in range(8)]
     est = [odo.register(depth_of_room(p)) for p in poses]
     t_est, t_gt = est[-1][:3, 3], poses[-1][:3, 3]
     # conventions: the camera-to-world motion comes out in the right direction, without rotation.
@@ -250,7 +249,7 @@ def test_kiss_icp_recovers_motion_of_a_box_room():
     assert cos > 0.95 and 0.2 < ratio < 1.2, (cos, ratio)
     assert pose_distance(est[-1], poses[-1])[1] < 1.0
     # a frame offset: the first pose is c2w_first
-    first = exp_se3(np.array([1.0, 2.0, 3.0, 0.1, 0.2, 0.3]))
+    first = se3_exp_np(np.array([1.0, 2.0, 3.0, 0.1, 0.2, 0.3]))
     odo2 = KissIcpOdometry(cam, KissIcpConfig(voxel_size=0.05, stride=2), c2w_first=first)
     np.testing.assert_allclose(odo2.register(depth_of_room(poses[0])), first, atol=1e-9)
 
@@ -260,8 +259,8 @@ def _points_and_views(seed=7, n=300):
     rng = np.random.default_rng(seed)
     cam = PinholeCamera(300.0, 300.0, 159.5, 119.5, 320, 240)
     pts = np.stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-1.0, 1.0, n), rng.uniform(2.0, 5.0, n)], -1)
-    poses = [np.eye(4), exp_se3(np.array([0.25, 0.05, 0.05, 0.02, -0.05, 0.01])),
-             exp_se3(np.array([0.45, -0.05, 0.1, -0.01, -0.09, 0.02]))]
+    poses = [np.eye(4), se3_exp_np(np.array([0.25, 0.05, 0.05, 0.02, -0.05, 0.01])),
+             se3_exp_np(np.array([0.45, -0.05, 0.1, -0.01, -0.09, 0.02]))]
 
     def project(c2w):
         w2c = inv_pose(c2w)
@@ -305,7 +304,7 @@ def test_triangulate_with_known_poses_and_rejections():
 
 def _similarity(rot_vec, shift, scale):
     """(4x4 rigid part, scale) of a world similarity x -> scale * (R x) + shift."""
-    t = exp_se3(np.concatenate([np.zeros(3), rot_vec]))
+    t = se3_exp_np(np.concatenate([np.zeros(3), rot_vec]))
     t[:3, 3] = shift
     return t, scale
 
@@ -343,7 +342,7 @@ def test_refine_pnp_recovers_the_pose_in_any_unit_and_origin():
 
     cam, pts, poses, uvs = _points_and_views()
     true_w2c = inv_pose(poses[2])
-    guess = exp_se3(np.array([0.05, -0.03, 0.02, 0.02, 0.025, -0.01])) @ true_w2c
+    guess = se3_exp_np(np.array([0.05, -0.03, 0.02, 0.02, 0.025, -0.01])) @ true_w2c
     out = refine_pnp(cam, pts, uvs[2], guess)
     dt, dr = pose_distance(out, true_w2c)
     assert dt < 1e-5 and dr < 1e-4, (dt, dr)  # OpenCV stops at ~3e-7 m here
@@ -365,15 +364,15 @@ def test_reprojection_jacobians_match_finite_differences():
 
     cam = PinholeCamera(250.0, 240.0, 160.0, 120.0, 320, 240)
     rng = np.random.default_rng(9)
-    t = np.stack([exp_se3(rng.normal(size=6) * 0.2) for _ in range(6)])
+    t = np.stack([se3_exp_np(rng.normal(size=6) * 0.2) for _ in range(6)])
     x = rng.normal(size=(6, 3)) + [0.0, 0.0, 4.0]
     jp, jx = reprojection_jacobians(cam, t, x)
     eps = 1e-6
     for k in range(6):
         d = np.zeros(6)
         d[k] = eps
-        num = (_project(cam, np.stack([exp_se3(d) @ ti for ti in t]), x)[0]
-               - _project(cam, np.stack([exp_se3(-d) @ ti for ti in t]), x)[0]) / (2 * eps)
+        num = (_project(cam, np.stack([se3_exp_np(d) @ ti for ti in t]), x)[0]
+               - _project(cam, np.stack([se3_exp_np(-d) @ ti for ti in t]), x)[0]) / (2 * eps)
         np.testing.assert_allclose(jp[:, :, k], num, rtol=1e-6, atol=1e-6)
     for k in range(3):
         d = np.zeros(3)
@@ -391,7 +390,7 @@ def test_schur_step_matches_dense_normal_equations():
     rng = np.random.default_rng(11)
     n_pose, n_pt = 5, 40
     fixed = {0, 2}
-    t = np.stack([exp_se3(rng.normal(size=6) * 0.1) for _ in range(n_pose)])
+    t = np.stack([se3_exp_np(rng.normal(size=6) * 0.1) for _ in range(n_pose)])
     x = rng.normal(size=(n_pt, 3)) + [0.0, 0.0, 4.0]
     pairs = {(int(k), p) for p in range(n_pt) for k in rng.choice(n_pose, rng.integers(2, 5), replace=False)}
     kf, pt = np.array(sorted(pairs)).T
@@ -424,7 +423,7 @@ def test_bundle_adjust_recovers_perturbed_geometry():
 
     cam, pts, poses, uvs = _points_and_views()
     rng = np.random.default_rng(10)
-    start_poses = [poses[0], poses[1], exp_se3(np.array([0.01, -0.01, 0.02, 0.005, 0.004, -0.003])) @ poses[2]]
+    start_poses = [poses[0], poses[1], se3_exp_np(np.array([0.01, -0.01, 0.02, 0.005, 0.004, -0.003])) @ poses[2]]
     start_pts = pts + rng.normal(0, 0.03, pts.shape)
     n = len(pts)
     obs_kf = np.repeat(np.arange(3), n)
@@ -459,7 +458,7 @@ def test_warp_residuals_mask_drops_points_on_fill():
     lvl = with_gradients(rng.random((48, 64)).astype(np.float32))
     mask = rng.random((48, 64)) > 0.3
     pts = np.stack([rng.uniform(-1, 1, 400), rng.uniform(-0.8, 0.8, 400), rng.uniform(1.5, 3, 400)], -1)
-    t = exp_se3(np.array([0.02, -0.01, 0.03, 0.01, -0.02, 0.015]))
+    t = se3_exp_np(np.array([0.02, -0.01, 0.03, 0.01, -0.02, 0.015]))
     iref = rng.random(400).astype(np.float32)
     r_all, _, v_all = warp_residuals(lvl, cam, pts, iref, t, np.zeros(2))
     r_m, jac_m, v_m = warp_residuals(lvl, cam, pts, iref, t, np.zeros(2), mask=mask)
@@ -478,7 +477,7 @@ def test_tracker_ignores_black_fill_of_current_frame(scene_pair):
     filled = rgb1.copy()
     filled[:, :40] = 0  # like the border of an undistorted image
     ref = make_reference(rgb0, d0, cam, c2w0, levels=3, num_points=2000)
-    from fmapping.tracking.direct import image_valid_mask
+    from fmapping.tracking.direct_align import image_valid_mask
 
     masked = build_pyramid(to_gray(filled), cam, 3, valid=image_valid_mask(filled))
     plain = build_pyramid(to_gray(filled), cam, 3)
@@ -503,7 +502,7 @@ def test_two_view_known_baseline_recovers_rotation_despite_outliers():
     rng = np.random.default_rng(0)
     n = 150
     pts = np.stack([rng.uniform(-2, 2, n), rng.uniform(-1.5, 1.5, n), rng.uniform(1.5, 4, n)], -1)
-    c2w_b = exp_se3(np.array([0.02, 0.005, -0.01, 0.02, -0.3, 0.05]))  # 17 deg pan, 2 cm baseline
+    c2w_b = se3_exp_np(np.array([0.02, 0.005, -0.01, 0.02, -0.3, 0.05]))  # 17 deg pan, 2 cm baseline
 
     def proj(c2w):
         w2c = inv_pose(c2w)
@@ -527,7 +526,7 @@ def test_two_view_known_baseline_recovers_rotation_despite_outliers():
 def _run_mono(ds, cfg, extra_of=None):
     """The mono front end over ``ds`` anchored by its GT (frame 0 pose, baseline length);
     ``extra_of(k)`` gives frame k's ``extra_depth`` (or None). Returns (front end, GT poses)."""
-    from fmapping.tracking.frontend import TrackerConfig
+    from fmapping.tracking.direct_tracker import TrackerConfig
     from fmapping.tracking.mono import MonoFrontend
 
     g = [ds[i].c2w for i in range(len(ds))]
@@ -581,7 +580,7 @@ def test_mono_adds_dense_depth_to_keyframes_only_where_it_agrees_with_the_landma
     import dataclasses
 
     from fmapping.datasets import open_dataset
-    from fmapping.tracking.direct import bilinear
+    from fmapping.tracking.direct_align import bilinear
     from fmapping.tracking.mono import MonoConfig
 
     ds = open_dataset(room320)
@@ -613,7 +612,7 @@ def test_mono_recovers_a_frame_the_direct_alignment_loses_from_its_landmarks(roo
     from the undisturbed run; PnP alone, 5.9 mm / 0.23 deg from the GT (undisturbed: 6.9 mm /
     0.14 deg)."""
     from fmapping.datasets import open_dataset
-    from fmapping.tracking.frontend import TrackResult
+    from fmapping.tracking.direct_tracker import TrackResult
     from fmapping.tracking.mono import MonoConfig, MonoFrontend
 
     ds = open_dataset(room320)
@@ -680,7 +679,7 @@ def test_moved_poses_hands_on_only_what_moved_beyond_the_thresholds():
 def _mono_until(ds, cfg, stop, anchor_factor=lambda k: 1.0, hook=None):
     """The mono front end over frames [0, stop) of ``ds``, anchored by the GT baseline times
     ``anchor_factor(k)`` (None: no anchor); ``hook(fe, k)`` runs before frame k is tracked."""
-    from fmapping.tracking.frontend import TrackerConfig
+    from fmapping.tracking.direct_tracker import TrackerConfig
     from fmapping.tracking.mono import MonoFrontend
 
     g = [ds[i].c2w for i in range(len(ds))]
@@ -705,7 +704,7 @@ def test_mono_rescale_scales_the_whole_front_end_and_tracking_goes_on_unchanged(
     the frames tracked afterwards are the unscaled run's poses scaled (the front end does not
     depend on the unit of length; measured: 4e-7 m and 5e-6 deg apart)."""
     from fmapping.datasets import open_dataset
-    from fmapping.tracking.direct import scale_about
+    from fmapping.geometry import scale_about
     from fmapping.tracking.mono import MonoConfig
 
     ds = open_dataset(room320)

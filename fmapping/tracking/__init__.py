@@ -1,8 +1,8 @@
 """Camera tracking: direct photometric alignment (fast path), render-and-compare (paper path), pose sources.
 
-* :mod:`fmapping.tracking.direct` - image pyramids, pixel selection, analytic-Jacobian
+* :mod:`fmapping.tracking.direct_align` - image pyramids, pixel selection, analytic-Jacobian
   Gauss-Newton / LM alignment of a frame to a reference keyframe with depth.
-* :mod:`fmapping.tracking.frontend` - :class:`DirectTracker`: motion model, loss detection,
+* :mod:`fmapping.tracking.direct_tracker` - :class:`DirectTracker`: motion model, loss detection,
   re-localisation against recent keyframes, keyframe decisions.
 * :mod:`fmapping.tracking.mono` - :class:`MonoFrontend`: RGB-only two-view bootstrap, sparse
   landmarks from KLT tracks, windowed bundle adjustment (:mod:`fmapping.tracking.ba`,
@@ -13,8 +13,8 @@
   through depth), and the camera-frame rotation that explains them best.
 * :mod:`fmapping.tracking.sources` - kiss-icp on depth, TUM files.
 """
-from fmapping.tracking.direct import AlignConfig, AlignResult, Reference, align, make_reference
-from fmapping.tracking.frontend import DirectTracker, TrackerConfig, TrackResult
+from fmapping.tracking.direct_align import AlignConfig, AlignResult, Reference, align, make_reference
+from fmapping.tracking.direct_tracker import DirectTracker, TrackerConfig, TrackResult
 from fmapping.tracking.ba import BAResult, bundle_adjust
 from fmapping.tracking.features import KltConfig, triangulate, two_view_init
 from fmapping.tracking.mapview import MapView, MapViewConfig

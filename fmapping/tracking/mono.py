@@ -13,7 +13,7 @@ RGB-only tracking before (and independently of) the neural map:
    the mapper's init window) and the whole front end is rescaled about frame 0
    (:meth:`MonoFrontend.rescale`): a bootstrap baseline of a few frames is too short
    to hold the scale.
-2. **Tracking.** Every frame is aligned by :class:`~fmapping.tracking.frontend.DirectTracker`
+2. **Tracking.** Every frame is aligned by :class:`~fmapping.tracking.direct_tracker.DirectTracker`
    to the current keyframe (sparse depth at tracked corners); KLT tracks are
    carried along from frame to frame. A frame the alignment loses (motion blur, a
    blurred keyframe) gets its pose from the tracked landmarks (PnP + RANSAC) and is
@@ -55,12 +55,13 @@ import numpy as np
 from fmapping.camera import PinholeCamera
 from fmapping.geometry import orthonormalize
 from fmapping.tracking.ba import bundle_adjust
-from fmapping.tracking.direct import inv_pose, pose_distance, scale_about, select_pixels, to_gray
+from fmapping.geometry import inv_pose, pose_distance, scale_about
+from fmapping.tracking.direct_align import select_pixels, to_gray
 from fmapping.tracking.features import (
     REFERENCE_WIDTH, KltConfig, at_width, detect_corners, klt_track, pnp_ransac, refine_pnp, to_u8, triangulate,
     two_view_init, two_view_known_baseline,
 )
-from fmapping.tracking.frontend import DirectTracker, TrackerConfig, TrackResult
+from fmapping.tracking.direct_tracker import DirectTracker, TrackerConfig, TrackResult
 from fmapping.tracking.loop import LoopConfig, LoopMatch, cross_check, locate_in_keyframe, loop_candidates
 from fmapping.tracking.posegraph import optimize_pose_graph
 from fmapping.tracking.rolling_shutter import rotation_step, unroll
@@ -523,7 +524,7 @@ class MonoFrontend:
         self._last_gray = gray
 
     def _reinit(self, index: int, rgb, gray, c2w: np.ndarray) -> None:
-        from fmapping.tracking.direct import make_reference
+        from fmapping.tracking.direct_align import make_reference
 
         med = self.tracker.reference.median_depth if self.tracker.reference is not None else self.cfg.unit_depth
         cam = self.camera
