@@ -179,13 +179,14 @@ def rel_error(rel: np.ndarray, rel_gt: np.ndarray, scale: float) -> tuple[float,
 def loop_capture():
     """Record the relative pose each accepted loop measured. The front end's loop record
     (``stats["loop_closures"]``: frame, keyframe, inliers, moved_m / moved_deg, pose-graph costs)
-    does not hold it, so ``MonoFrontend._correct_loop`` is wrapped in this process only: at its call
+    does not hold it, so ``MonoFrontend._correct_loop`` (from its mixin ``LoopClosing``) is wrapped in this
+    process only: at its call
     the old keyframe's pose and the loop's ``LoopMatch.c2w`` give keyframe -> frame as the images saw
     it. Yields the list it fills (None when the method is not there any more)."""
-    from fmapping.tracking import mono
     from fmapping.geometry import inv_pose
+    from fmapping.tracking.mono.loop_closing import LoopClosing
 
-    cls = mono.MonoFrontend
+    cls = LoopClosing
     orig = cls.__dict__.get("_correct_loop")
     if orig is None:
         yield None
@@ -195,8 +196,8 @@ def loop_capture():
     def wrapped(self, old, index, m, *args, **kw):
         try:
             got.append({"keyframe": int(old), "frame": int(index),
-                        "loop_rel": inv_pose(self._kf_pose[old]) @ np.asarray(m.c2w, np.float64),
-                        "chain_rel": inv_pose(self._kf_pose[old]) @ self._kf_pose[index]})
+                        "loop_rel": inv_pose(self.store.kf_pose[old]) @ np.asarray(m.c2w, np.float64),
+                        "chain_rel": inv_pose(self.store.kf_pose[old]) @ self.store.kf_pose[index]})
         except Exception as e:  # noqa: BLE001 - private state changed shape: fall back to the trajectory
             got.append({"keyframe": int(old), "frame": int(index), "error": repr(e)})
         return orig(self, old, index, m, *args, **kw)

@@ -217,9 +217,10 @@ def test_mono_closes_the_loop_back_at_the_first_keyframe(loop160):
     # the loop's inliers became observations of the first keyframe's landmarks (what holds the BA closed);
     # measured: all 52 kept, BA RMS 0.31 px
     first_kf = {}
-    for kf, lid, _, _ in fe._obs:
+    for kf, lid, _, _ in fe.store.obs:
         first_kf.setdefault(lid, kf)
-    assert sum(1 for kf, lid, _, _ in fe._obs if kf == loop_kf and first_kf[lid] == 0) >= 0.5 * fe.loops[0]["inliers"]
+    assert (sum(1 for kf, lid, _, _ in fe.store.obs if kf == loop_kf and first_kf[lid] == 0)
+            >= 0.5 * fe.loops[0]["inliers"])
     assert fe.loops[0]["ba_rms_px"] < 1.0
     assert errs[True] < 0.03 and errs[True] < 0.4 * errs[False], errs
 
@@ -233,9 +234,9 @@ def test_mono_loop_longer_than_the_ba_cap_gets_the_pose_graph_alone(loop160):
     fe, _ = _run_mono(ds, True, loop_ba_max_keyframes=5)
     assert fe.loops and not any(rec["ba"] for rec in fe.loops) and fe.loops[0]["keyframes"] > 5
     first_kf = {}
-    for kf, lid, _, _ in fe._obs:
+    for kf, lid, _, _ in fe.store.obs:
         first_kf.setdefault(lid, kf)
-    assert not any(kf == fe.loops[0]["frame"] and first_kf[lid] == 0 for kf, lid, _, _ in fe._obs)
+    assert not any(kf == fe.loops[0]["frame"] and first_kf[lid] == 0 for kf, lid, _, _ in fe.store.obs)
     p = fe.poses()
     err = np.mean([np.linalg.norm(p[k][:3, 3] - ds.gt_poses[k][:3, 3]) for k in range(190, 200)])
     assert err < 0.03, err
@@ -263,14 +264,14 @@ def test_scaling_keyframes_moves_their_frames_landmarks_and_references_alike(loo
     moved = kfs[len(kfs) // 2:]
     about, s = moved[0], 1.25
     c0 = fe.keyframe_poses()[about][:3, 3].copy()
-    poses, lms = fe.poses(), [p.copy() for p in fe._lm]
+    poses, lms = fe.poses(), [p.copy() for p in fe.store.lm]
     ref = fe.tracker.reference
     assert ref.frame_index in moved
     ref_world = ref.points @ ref.c2w[:3, :3].T + ref.c2w[:3, 3]
-    first = fe._first_keyframes()
+    first = fe.store.first_keyframes()
     fe._scale_keyframes(moved, about, s)
     after = fe.poses()
-    stored_at = {f: kf for f, (kf, _) in fe._rel.items()}
+    stored_at = {f: kf for f, (kf, _) in fe.store.rel.items()}
     n = 0
     for f, p in poses.items():
         want = scale_about(p, c0, s) if stored_at[f] in moved else p
@@ -279,6 +280,6 @@ def test_scaling_keyframes_moves_their_frames_landmarks_and_references_alike(loo
     assert n > 10  # non-keyframes among them (the part the old code left unscaled)
     for lid, p in enumerate(lms):
         want = c0 + s * (p - c0) if first.get(lid) in moved else p
-        np.testing.assert_allclose(fe._lm[lid], want, atol=1e-9)
+        np.testing.assert_allclose(fe.store.lm[lid], want, atol=1e-9)
     ref = fe.tracker.reference
     np.testing.assert_allclose(ref.points @ ref.c2w[:3, :3].T + ref.c2w[:3, 3], c0 + s * (ref_world - c0), atol=1e-9)

@@ -548,23 +548,24 @@ def test_mono_ba_with_fixed_older_observers_keeps_them_fixed_and_tracks(room320)
 
     from fmapping.datasets import open_dataset
     from fmapping.metrics import ate
-    from fmapping.tracking import mono as M
+    from fmapping.tracking.mono import MonoConfig
+    from fmapping.tracking.mono import store as S
 
     ds = open_dataset(room320)
     moved = []
-    real_ba = M.bundle_adjust
+    real_ba = S.bundle_adjust
 
     def spy(camera, poses, fixed, *a, **kw):  # records how far BA moved the poses it was told to fix
         res = real_ba(camera, poses, fixed, *a, **kw)
         moved.extend(float(np.abs(res.poses[j] - poses[j]).max()) for j in fixed)
         return res
 
-    M.bundle_adjust = spy
+    S.bundle_adjust = spy  # the keyframes' bundle adjustment (KeyframeStore.run_ba)
     try:
-        cfg = dataclasses.replace(M.MonoConfig(), window=3, ba_fixed_observers=5)  # a short window: old keyframes
+        cfg = dataclasses.replace(MonoConfig(), window=3, ba_fixed_observers=5)  # a short window: old keyframes
         fe, g = _run_mono(ds, cfg)
     finally:
-        M.bundle_adjust = real_ba
+        S.bundle_adjust = real_ba
     assert any(b["fixed_observers"] > 0 for b in fe.ba_stats), fe.ba_stats
     assert moved and max(moved) < 1e-9
     p = fe.poses()

@@ -6,7 +6,8 @@
   re-localisation against recent keyframes, keyframe decisions.
 * :mod:`fmapping.tracking.mono` - :class:`MonoFrontend`: RGB-only two-view bootstrap, sparse
   landmarks from KLT tracks, windowed bundle adjustment (:mod:`fmapping.tracking.ba`,
-  :mod:`fmapping.tracking.features`).
+  :mod:`fmapping.tracking.features`), loop closure; a package (config, keyframe/landmark store,
+  bootstrap, front end, loop closing, restart).
 * :mod:`fmapping.tracking.render_compare` - Adam on se(3) through the neural field.
 * :mod:`fmapping.tracking.mapview` - depth / rays rendered from the mapper's field.
 * :mod:`fmapping.tracking.consistency` - how well poses explain the images (KLT tracks moved
