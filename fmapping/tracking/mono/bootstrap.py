@@ -25,8 +25,9 @@ def _parallax_deg(c2w_a: np.ndarray, c2w_b: np.ndarray, world: np.ndarray) -> np
 
 class Bootstrap:
     """:meth:`bootstrap` (stage 1 of :mod:`fmapping.tracking.mono`). A mixin of
-    :class:`~fmapping.tracking.mono.frontend.MonoFrontend`: it works on the front end's ``store``, ``tracker``,
-    ``camera`` and ``cfg``."""
+    :class:`~fmapping.tracking.mono.frontend.MonoFrontend`: it works on the front end's state (``store``,
+    ``tracker``, ``cfg`` and the fields ``MonoFrontend.__init__`` sets) and helpers (``_klt``, ``_geo``,
+    ``_set_reference``)."""
 
     def bootstrap(self, index: int, rgb: np.ndarray, c2w0: np.ndarray,
                   anchor_baseline: Optional[Callable[[int], Optional[float]]] = None,

@@ -13,7 +13,8 @@ from fmapping.tracking.posegraph import optimize_pose_graph
 
 class LoopClosing:
     """Stage 4 of :mod:`fmapping.tracking.mono`. A mixin of :class:`~fmapping.tracking.mono.frontend.MonoFrontend`:
-    it works on the front end's ``store``, ``tracker``, ``camera``, ``cfg`` and keyframe images."""
+    it works on the front end's state (``store``, ``tracker``, ``cfg``, the keyframe images ``_kf_images``) and
+    its ``_scale_part``."""
 
     def _close_loop(self, index: int, gray: np.ndarray) -> None:
         """Look for an old keyframe the camera has come back to (:mod:`fmapping.tracking.loop`); when

@@ -14,7 +14,8 @@ from fmapping.tracking.mono.store import Tracks
 
 class Restart:
     """:meth:`keyframe_states` and :meth:`resume`. A mixin of :class:`~fmapping.tracking.mono.frontend.MonoFrontend`:
-    it works on the front end's ``store``, ``tracker``, ``camera`` and ``cfg``."""
+    it works on the front end's state (``store``, ``tracker``, ``cfg`` and the fields ``MonoFrontend.__init__``
+    sets) and its ``_set_reference``."""
 
     def keyframe_states(self, n: int = 5) -> list:
         """What a restarted front end needs to go on in this world frame and scale (:meth:`resume`): for
