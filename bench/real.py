@@ -182,13 +182,14 @@ def rel_error(rel: np.ndarray, rel_gt: np.ndarray, scale: float) -> tuple[float,
 def loop_capture():
     """Record the relative pose each accepted loop measured. The front end's loop record
     (``stats["loop_closures"]``: frame, keyframe, inliers, moved_m / moved_deg, pose-graph costs)
-    does not hold it, so ``MonoFrontend._correct_loop`` is wrapped in this process only: at its call
+    does not hold it, so ``MonoFrontend._correct_loop`` (from its mixin ``LoopClosing``) is wrapped in this
+    process only: at its call
     the old keyframe's pose and the loop's ``LoopMatch.c2w`` give keyframe -> frame as the images saw
     it. Yields the list it fills (None when the method is not there any more)."""
-    from fmapping.tracking import mono
-    from fmapping.tracking.direct import inv_pose
+    from fmapping.geometry import inv_pose
+    from fmapping.tracking.mono.loop_closing import LoopClosing
 
-    cls = mono.MonoFrontend
+    cls = LoopClosing
     orig = cls.__dict__.get("_correct_loop")
     if orig is None:
         yield None
@@ -198,8 +199,8 @@ def loop_capture():
     def wrapped(self, old, index, m, *args, **kw):
         try:
             got.append({"keyframe": int(old), "frame": int(index),
-                        "loop_rel": inv_pose(self._kf_pose[old]) @ np.asarray(m.c2w, np.float64),
-                        "chain_rel": inv_pose(self._kf_pose[old]) @ self._kf_pose[index]})
+                        "loop_rel": inv_pose(self.store.kf_pose[old]) @ np.asarray(m.c2w, np.float64),
+                        "chain_rel": inv_pose(self.store.kf_pose[old]) @ self.store.kf_pose[index]})
         except Exception as e:  # noqa: BLE001 - private state changed shape: fall back to the trajectory
             got.append({"keyframe": int(old), "frame": int(index), "error": repr(e)})
         return orig(self, old, index, m, *args, **kw)
@@ -219,7 +220,7 @@ def check_loops(loops: list, captured: Optional[list], est: np.ndarray, gt: list
     trajectory). Translations are compared after the trajectory's Sim3 scale ``sim3_scale``; the front
     end's own poses are first multiplied by ``output_scale`` (its units -> the written trajectory's).
     A loop is contradicted when its relative pose is off by > LOOP_MAX_M or > LOOP_MAX_DEG."""
-    from fmapping.tracking.direct import inv_pose
+    from fmapping.geometry import inv_pose
 
     cap = {(c["keyframe"], c["frame"]): c for c in (captured or []) if "loop_rel" in c}
     out, bad = [], 0

@@ -189,7 +189,7 @@ def anchored_ate(c2w: np.ndarray, gt: list, frame: int = 14) -> dict:
     """The ATE of a trajectory scaled about its first camera centre so that the baseline to ``frame``
     is the GT's (the front end's late anchor, ``MonoConfig.late_anchor_frames``): the SE3 figure
     that trajectory would score under the monocular scale protocol."""
-    from fmapping.tracking.direct import scale_about
+    from fmapping.geometry import scale_about
 
     g = np.stack(gt)
     s = np.linalg.norm(g[frame, :3, 3] - g[0, :3, 3]) / max(np.linalg.norm(c2w[frame, :3, 3] - c2w[0, :3, 3]), 1e-12)
@@ -246,7 +246,7 @@ def images_optimum(frames, camera, starts: dict, readouts=(0.3, 0.6, 0.85, 1.0))
 
 def run_direct(frames, camera, depth_of, poses_out: "dict | None" = None) -> dict:
     """``depth_of(i, c2w)`` -> depth image or uv callable for a new keyframe at frame i."""
-    from fmapping.tracking.frontend import DirectTracker
+    from fmapping.tracking.direct_tracker import DirectTracker
 
     tr = DirectTracker(camera)
     gt0 = frames[0].c2w
@@ -372,7 +372,7 @@ def build_map(frames, camera, iters: int):
 
 
 def run_render_compare(frames, camera, view, iterations: int) -> dict:
-    from fmapping.tracking.direct import inv_pose, orthonormalize
+    from fmapping.geometry import inv_pose, orthonormalize
     from fmapping.tracking.render_compare import RenderCompareConfig, RenderCompareTracker
 
     rc = RenderCompareTracker(view, RenderCompareConfig(iterations=iterations))

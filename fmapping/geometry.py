@@ -14,7 +14,8 @@ All functions accept any leading batch shape ``(..., 3)`` / ``(..., 3, 3)`` /
 ``(..., 4, 4)`` and are stable at small angles (Taylor branches chosen with
 ``torch.where`` on safe inputs, so gradients stay finite at exactly zero).
 The projections onto SO(3) (:func:`nearest_rotation`, :func:`orthonormalize`) take one
-matrix, numpy or torch.
+matrix, numpy or torch; the numpy pose helpers at the end (:func:`se3_exp_np`, :func:`inv_pose`,
+:func:`scale_about`, :func:`pose_distance`) take one float64 4x4 pose, for the numpy tracking code.
 """
 from __future__ import annotations
 
@@ -231,3 +232,50 @@ def as_tensor_pose(c2w, dtype=torch.float32, device=None) -> Tensor:
     if not torch.isfinite(t).all():
         raise ValueError("pose contains NaN or Inf")
     return t
+
+
+# --- numpy pose helpers
+def se3_exp_np(xi: np.ndarray) -> np.ndarray:
+    """se(3) twist (6,) (rho, phi) -> 4x4 float64.
+
+    The same map as :func:`se3_exp` (tested against it), written
+    for one float64 6-vector in numpy because the torch version costs ~1 ms per call
+    and the optimiser calls it every iteration.
+    """
+    xi = np.asarray(xi, np.float64)
+    rho, phi = xi[:3], xi[3:]
+    th2 = float(phi @ phi)
+    if th2 < 1e-10:
+        a, b, c = 1 - th2 / 6, 0.5 - th2 / 24, 1 / 6 - th2 / 120
+    else:
+        th = math.sqrt(th2)
+        a, b, c = math.sin(th) / th, (1 - math.cos(th)) / th2, (th - math.sin(th)) / (th2 * th)
+    k = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    k2 = k @ k
+    out = np.eye(4)
+    out[:3, :3] += a * k + b * k2
+    out[:3, 3] = (np.eye(3) + b * k + c * k2) @ rho
+    return out
+
+
+def inv_pose(t: np.ndarray) -> np.ndarray:
+    """Inverse of a 4x4 rigid transform."""
+    out = np.eye(4)
+    out[:3, :3] = t[:3, :3].T
+    out[:3, 3] = -t[:3, :3].T @ t[:3, 3]
+    return out
+
+
+def scale_about(c2w: np.ndarray, center: np.ndarray, s: float) -> np.ndarray:
+    """The pose in a world scaled by ``s`` about ``center``: its camera centre ``t`` moves to
+    ``center + s * (t - center)``, its rotation stays."""
+    out = np.array(c2w, np.float64)
+    out[:3, 3] = center + s * (out[:3, 3] - center)
+    return out
+
+
+def pose_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """(translation metres, rotation degrees) of ``inv(a) @ b``."""
+    d = inv_pose(a) @ b
+    ang = float(rotation_angle(torch.as_tensor(d[:3, :3])))
+    return float(np.linalg.norm(d[:3, 3])), math.degrees(ang)

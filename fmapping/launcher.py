@@ -102,7 +102,7 @@ def _mapper_defaults():
 
 
 def _tracker_defaults():
-    from fmapping.tracking.frontend import TrackerConfig
+    from fmapping.tracking.direct_tracker import TrackerConfig
 
     return TrackerConfig()
 
@@ -113,7 +113,7 @@ class UpConfig:
     the defaults; :func:`split_config` reads such a file). The sections are built on first use so
     that importing the launcher does not import torch."""
     mapper: Any = field(default_factory=_mapper_defaults)  # fmapping.mapping.MapperConfig
-    tracker: Any = field(default_factory=_tracker_defaults)  # fmapping.tracking.frontend.TrackerConfig
+    tracker: Any = field(default_factory=_tracker_defaults)  # fmapping.tracking.direct_tracker.TrackerConfig
     launcher: LauncherOptions = field(default_factory=LauncherOptions)
 
 

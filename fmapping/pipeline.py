@@ -103,7 +103,7 @@ def _heldout_psnr(mapper: Mapper, ds, used: list, n: int = 8) -> Optional[float]
     import cv2
 
     from fmapping.metrics import psnr
-    from fmapping.tracking.direct import image_valid_mask
+    from fmapping.tracking.direct_align import image_valid_mask
 
     kf = set(mapper.keyframe_ids())
     cand = [(fid, i) for fid, i in enumerate(used) if fid not in kf]

@@ -15,7 +15,7 @@ Pose sources (``job.poses``):
 * ``photometric`` (default): RGB only, front end :class:`~fmapping.tracking.mono.MonoFrontend`
   (``slam.frontend: mono``): KLT tracks and a two-view bootstrap give the first poses
   and sparse landmarks; every frame is then aligned photometrically
-  (:class:`~fmapping.tracking.frontend.DirectTracker`, the fast path) to the current
+  (:class:`~fmapping.tracking.direct_tracker.DirectTracker`, the fast path) to the current
   keyframe, whose depth comes from the landmarks (with ``mono.dense_extra``, off by
   default, plus depth rendered from the map where mapped frames looked, at each keyframe
   where it agrees with the landmarks); keyframes are refined by a windowed bundle
@@ -67,13 +67,13 @@ import numpy as np
 
 from fmapping.cancel import Cancelled, StopFn
 from fmapping.config import load_config, to_dict
+from fmapping.geometry import scale_about
 from fmapping.job import Job
 from fmapping.map_outputs import MESH_RESOLUTION, write_map_outputs
 from fmapping.mapping import Mapper, MapperConfig
 from fmapping.pipeline import open_job_dataset, recon_stats, write_stats
 from fmapping.session import PoseSession, SlamSession, session_config_from
-from fmapping.tracking.direct import scale_about
-from fmapping.tracking.frontend import DirectTracker, TrackerConfig
+from fmapping.tracking.direct_tracker import DirectTracker, TrackerConfig
 from fmapping.tracking.mapview import MapView, MapViewConfig
 from fmapping.tracking.mono import MonoConfig
 from fmapping.tracking.render_compare import RenderCompareConfig

@@ -78,7 +78,7 @@ def test_config_dump_up_loads_back_unchanged(tmp_path, capsys):
     from fmapping.config import load_config
     from fmapping.launcher import LauncherOptions, UpConfig, split_config
     from fmapping.mapping import MapperConfig
-    from fmapping.tracking.frontend import TrackerConfig
+    from fmapping.tracking.direct_tracker import TrackerConfig
 
     path = tmp_path / "up.yaml"
     path.write_text(_dump("up", capsys))

@@ -119,3 +119,22 @@ def test_orthonormalize_pose_keeps_translation_fixes_last_row_and_copies():
     np.testing.assert_allclose(out[:3, :3], Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix(), atol=1e-6)
     assert out[:3, 3].tolist() == [1.0, 2.0, 3.0] and out[3].tolist() == [0.0, 0.0, 0.0, 1.0]
     np.testing.assert_allclose(g.orthonormalize(out), out, atol=1e-15)  # a rotation stays put
+
+
+# ----------------------------------------------------------------------------- numpy pose helpers
+def test_se3_exp_np_matches_geometry():
+    rng = np.random.default_rng(0)
+    for scale in (0.0, 1e-7, 1e-3, 0.3, 2.5):
+        xi = rng.normal(size=6) * scale
+        ref = g.se3_exp(torch.as_tensor(xi)).numpy()
+        np.testing.assert_allclose(g.se3_exp_np(xi), ref, atol=1e-12)
+
+
+def test_orthonormalize_projects_to_rotation():
+    t = g.se3_exp_np(np.array([0.1, 0.2, 0.3, 0.4, -0.2, 0.1]))
+    noisy = t.copy()
+    noisy[:3, :3] *= 1.001
+    out = g.orthonormalize(noisy)
+    np.testing.assert_allclose(out[:3, :3] @ out[:3, :3].T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(out[:3, :3], t[:3, :3], atol=2e-3)
+    np.testing.assert_allclose(g.inv_pose(out) @ out, np.eye(4), atol=1e-12)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from fmapping.tracking.direct import exp_se3, inv_pose, pose_distance
+from fmapping.geometry import inv_pose, pose_distance, se3_exp_np
 
 
 def _circle_poses(n: int, radius: float = 1.0) -> list:
@@ -14,7 +14,7 @@ def _circle_poses(n: int, radius: float = 1.0) -> list:
     for k in range(n):
         a = 2 * np.pi * k / n
         p = np.eye(4)
-        p[:3, :3] = exp_se3(np.r_[0, 0, 0, 0.1, 0.05, a])[:3, :3]
+        p[:3, :3] = se3_exp_np(np.r_[0, 0, 0, 0.1, 0.05, a])[:3, :3]
         p[:3, 3] = radius * np.cos(a), radius * np.sin(a), 0.1 * np.sin(3 * a)
         out.append(p)
     return out
@@ -31,7 +31,7 @@ def test_pose_graph_recovers_poses_that_agree_with_every_edge():
     drift = np.eye(4)
     start = [gt[0]]
     for k in range(1, 12):
-        drift = drift @ exp_se3(np.r_[rng.normal(0, 0.005, 3), rng.normal(0, 0.006, 3)])
+        drift = drift @ se3_exp_np(np.r_[rng.normal(0, 0.005, 3), rng.normal(0, 0.006, 3)])
         start.append(drift @ gt[k])
     assert max(pose_distance(s, g)[0] for s, g in zip(start, gt)) > 0.02
     out, stats = optimize_pose_graph(start, edges, [0], unit=1.0)
@@ -51,7 +51,7 @@ def test_pose_graph_matches_a_dense_per_edge_reference_on_a_drifted_loop():
     n, unit = 10, 0.7
     gt = _circle_poses(n)
     rng = np.random.default_rng(1)
-    edges = [(k, k + 1, inv_pose(gt[k]) @ gt[k + 1] @ exp_se3(np.r_[rng.normal(0, 0.01, 3), rng.normal(0, 0.01, 3)]))
+    edges = [(k, k + 1, inv_pose(gt[k]) @ gt[k + 1] @ se3_exp_np(np.r_[rng.normal(0, 0.01, 3), rng.normal(0, 0.01, 3)]))
              for k in range(n - 1)]
     edges.append((0, n - 1, inv_pose(gt[0]) @ gt[n - 1]))
     start = [gt[0]]
@@ -90,8 +90,8 @@ def test_rotation_homography_maps_points_at_infinity():
     from fmapping.tracking.loop import rotation_homography
 
     cam = PinholeCamera(fx=250.0, fy=240.0, cx=160.0, cy=120.0, width=320, height=240)
-    a = exp_se3(np.r_[0.3, -0.1, 0.2, 0.05, 0.2, -0.1])
-    b = exp_se3(np.r_[-0.4, 0.2, 0.1, -0.1, -0.15, 0.3])
+    a = se3_exp_np(np.r_[0.3, -0.1, 0.2, 0.05, 0.2, -0.1])
+    b = se3_exp_np(np.r_[-0.4, 0.2, 0.1, -0.1, -0.15, 0.3])
     rng = np.random.default_rng(2)
     dirs = rng.normal(0, 0.3, (50, 3)) + a[:3, 2] + b[:3, 2]  # in front of both
     far = a[:3, 3] + 1e7 * dirs
@@ -133,7 +133,7 @@ def test_locate_in_keyframe_recovers_the_pose_from_an_old_keyframe(room320):
     ds = open_dataset(room320)
     old_gray, uv, world = _room_points(ds, 0)
     gt = ds.gt_poses[12]
-    guess = gt @ exp_se3(np.r_[0.02, -0.015, 0.015, 0.015, -0.02, 0.01])
+    guess = gt @ se3_exp_np(np.r_[0.02, -0.015, 0.015, 0.015, -0.02, 0.01])
     assert pose_distance(guess, gt)[0] > 0.025
     m = locate_in_keyframe(ds.camera, old_gray, uv, world, ds.gt_poses[0], to_u8(ds[12].rgb), guess,
                            KltConfig(), LoopConfig())
@@ -162,7 +162,7 @@ def test_cross_check_confirms_a_true_loop_and_measures_a_wrong_rotation(room320)
     assert m is not None
     true = cross_check(ds.camera, old_gray, g0, m, gray, uv, world, g12, KltConfig(), LoopConfig())
     assert true is not None and true[0] < 0.3 and true[1] < 0.01, true
-    off = LoopMatch(m.c2w @ exp_se3(np.r_[0.0, 0.0, 0.0, 0.0, np.radians(4.0), 0.0]), m.points, m.inliers,
+    off = LoopMatch(m.c2w @ se3_exp_np(np.r_[0.0, 0.0, 0.0, 0.0, np.radians(4.0), 0.0]), m.points, m.inliers,
                     m.index, m.uv)
     wrong = cross_check(ds.camera, old_gray, g0, off, gray, uv, world, g12, KltConfig(), LoopConfig())
     assert wrong is not None and 3.5 < wrong[0] < 4.5, wrong
@@ -217,9 +217,10 @@ def test_mono_closes_the_loop_back_at_the_first_keyframe(loop160):
     # the loop's inliers became observations of the first keyframe's landmarks (what holds the BA closed);
     # measured: all 52 kept, BA RMS 0.31 px
     first_kf = {}
-    for kf, lid, _, _ in fe._obs:
+    for kf, lid, _, _ in fe.store.obs:
         first_kf.setdefault(lid, kf)
-    assert sum(1 for kf, lid, _, _ in fe._obs if kf == loop_kf and first_kf[lid] == 0) >= 0.5 * fe.loops[0]["inliers"]
+    assert (sum(1 for kf, lid, _, _ in fe.store.obs if kf == loop_kf and first_kf[lid] == 0)
+            >= 0.5 * fe.loops[0]["inliers"])
     assert fe.loops[0]["ba_rms_px"] < 1.0
     assert errs[True] < 0.03 and errs[True] < 0.4 * errs[False], errs
 
@@ -233,9 +234,9 @@ def test_mono_loop_longer_than_the_ba_cap_gets_the_pose_graph_alone(loop160):
     fe, _ = _run_mono(ds, True, loop_ba_max_keyframes=5)
     assert fe.loops and not any(rec["ba"] for rec in fe.loops) and fe.loops[0]["keyframes"] > 5
     first_kf = {}
-    for kf, lid, _, _ in fe._obs:
+    for kf, lid, _, _ in fe.store.obs:
         first_kf.setdefault(lid, kf)
-    assert not any(kf == fe.loops[0]["frame"] and first_kf[lid] == 0 for kf, lid, _, _ in fe._obs)
+    assert not any(kf == fe.loops[0]["frame"] and first_kf[lid] == 0 for kf, lid, _, _ in fe.store.obs)
     p = fe.poses()
     err = np.mean([np.linalg.norm(p[k][:3, 3] - ds.gt_poses[k][:3, 3]) for k in range(190, 200)])
     assert err < 0.03, err
@@ -246,7 +247,7 @@ def test_scaling_keyframes_moves_their_frames_landmarks_and_references_alike(loo
     every frame stored relative to a scaled keyframe, every landmark first seen by one, and the
     tracker's reference of one end where scaling their old world positions puts them."""
     from fmapping.datasets import open_dataset
-    from fmapping.tracking.direct import scale_about
+    from fmapping.geometry import scale_about
     from fmapping.tracking.loop import LoopConfig
     from fmapping.tracking.mono import MonoConfig, MonoFrontend
 
@@ -263,14 +264,14 @@ def test_scaling_keyframes_moves_their_frames_landmarks_and_references_alike(loo
     moved = kfs[len(kfs) // 2:]
     about, s = moved[0], 1.25
     c0 = fe.keyframe_poses()[about][:3, 3].copy()
-    poses, lms = fe.poses(), [p.copy() for p in fe._lm]
+    poses, lms = fe.poses(), [p.copy() for p in fe.store.lm]
     ref = fe.tracker.reference
     assert ref.frame_index in moved
     ref_world = ref.points @ ref.c2w[:3, :3].T + ref.c2w[:3, 3]
-    first = fe._first_keyframes()
+    first = fe.store.first_keyframes()
     fe._scale_keyframes(moved, about, s)
     after = fe.poses()
-    stored_at = {f: kf for f, (kf, _) in fe._rel.items()}
+    stored_at = {f: kf for f, (kf, _) in fe.store.rel.items()}
     n = 0
     for f, p in poses.items():
         want = scale_about(p, c0, s) if stored_at[f] in moved else p
@@ -279,6 +280,6 @@ def test_scaling_keyframes_moves_their_frames_landmarks_and_references_alike(loo
     assert n > 10  # non-keyframes among them (the part the old code left unscaled)
     for lid, p in enumerate(lms):
         want = c0 + s * (p - c0) if first.get(lid) in moved else p
-        np.testing.assert_allclose(fe._lm[lid], want, atol=1e-9)
+        np.testing.assert_allclose(fe.store.lm[lid], want, atol=1e-9)
     ref = fe.tracker.reference
     np.testing.assert_allclose(ref.points @ ref.c2w[:3, :3].T + ref.c2w[:3, 3], c0 + s * (ref_world - c0), atol=1e-9)

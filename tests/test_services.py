@@ -474,8 +474,8 @@ def test_mono_tracker_core_is_the_library_front_end_anchored_by_gt(room320):
     close to the GT."""
     from fmapping.datasets import open_dataset
     from fmapping.metrics import ate
-    from fmapping.tracking.frontend import TrackerConfig
-    from fmapping.tracking.direct import pose_distance
+    from fmapping.tracking.direct_tracker import TrackerConfig
+    from fmapping.geometry import pose_distance
     from fmapping.tracking.mono import MonoFrontend
     from services.tracker import TrackerCore
 

@@ -14,7 +14,7 @@ def room(room320):
 
 def _anchored_session(ds, **policy):
     from fmapping.session import PoseSession, SessionConfig
-    from fmapping.tracking.frontend import TrackerConfig
+    from fmapping.tracking.direct_tracker import TrackerConfig
 
     return PoseSession(ds.camera, TrackerConfig(), None, SessionConfig(**policy))
 
@@ -36,7 +36,7 @@ def test_pose_session_buffers_the_bootstrap_and_holds_until_the_late_anchor(room
     scale, and every later push gives its own frame first, then only refined poses of frames given before
     that moved by more than the thresholds."""
     from fmapping.metrics import ate
-    from fmapping.tracking.direct import pose_distance
+    from fmapping.geometry import pose_distance
 
     sess = _anchored_session(room, restart_failed_bootstrap=True)
     per_push = _run(sess, room)

@@ -69,7 +69,7 @@ def test_slam_rgb_only_end_to_end(scene, tmp_path, monkeypatch):
     assert len(stats["windows"]) >= 2  # the mapper ran its init and on-the-fly windows
     # the mapper trained on the bundle-adjusted poses: at the end it holds the written trajectory, to the
     # threshold below which a moved pose is not handed on (1 mm, 0.05 deg)
-    from fmapping.tracking.direct import pose_distance
+    from fmapping.geometry import pose_distance
 
     assert stats["output_scale"] == 1.0 and stats["mapper_pose_updates"] > 0
     held = mapper.frame_poses()

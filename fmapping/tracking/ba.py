@@ -15,8 +15,7 @@ from typing import Sequence
 import numpy as np
 
 from fmapping.camera import PinholeCamera
-from fmapping.geometry import orthonormalize
-from fmapping.tracking.direct import exp_se3, inv_pose
+from fmapping.geometry import inv_pose, orthonormalize, se3_exp_np
 
 
 @dataclass
@@ -193,7 +192,7 @@ def bundle_adjust(camera: PinholeCamera, poses_c2w: Sequence[np.ndarray], fixed:
                 continue
             t_new = t.copy()
             for a, pi in enumerate(free):
-                t_new[pi] = exp_se3(dp[a]) @ t[pi]
+                t_new[pi] = se3_exp_np(dp[a]) @ t[pi]
             x_new = x + dx
             r_new, r2_new = residuals(t_new, x_new)
             nfev += 1

@@ -55,7 +55,7 @@ def to_u8(rgb: np.ndarray) -> np.ndarray:
 def detect_corners(gray: np.ndarray, cfg: KltConfig, existing: Optional[np.ndarray] = None) -> np.ndarray:
     """Shi-Tomasi corners (N, 2) float32, away from the border, from black fill (undistortion) and from
     ``existing`` points."""
-    from fmapping.tracking.direct import image_valid_mask
+    from fmapping.tracking.direct_align import image_valid_mask
 
     h, w = gray.shape
     mask = np.zeros((h, w), np.uint8)

@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from fmapping.camera import PinholeCamera
-from fmapping.tracking.direct import inv_pose
+from fmapping.geometry import inv_pose
 from fmapping.tracking.features import REFERENCE_WIDTH, KltConfig, at_width, klt_track, pnp_ransac
 
 

@@ -119,6 +119,6 @@ class MapView:
         return z
 
     def depth_fn(self, c2w: np.ndarray):
-        """A callable ``uv -> depth`` for :func:`fmapping.tracking.direct.make_reference`."""
+        """A callable ``uv -> depth`` for :func:`fmapping.tracking.direct_align.make_reference`."""
         pose = np.asarray(c2w, np.float64).copy()
         return lambda uv: self.depth_at(pose, uv)

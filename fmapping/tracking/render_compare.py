@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from fmapping.geometry import orthonormalize, se3_exp
-from fmapping.tracking.direct import select_pixels, to_gray
+from fmapping.tracking.direct_align import select_pixels, to_gray
 from fmapping.tracking.mapview import MapView
 
 

@@ -112,7 +112,7 @@ class TrackerCore(ServiceCore):
 
     def __init__(self, cfg=None, opts: Optional[TrackerServiceOptions] = None, counters=None, on_bad_input=None,
                  mono_cfg=None):
-        from fmapping.tracking.frontend import TrackerConfig
+        from fmapping.tracking.direct_tracker import TrackerConfig
 
         super().__init__(counters, on_bad_input)
         self.cfg = cfg if cfg is not None else TrackerConfig()
@@ -304,7 +304,7 @@ class TrackerCore(ServiceCore):
 
     def _set_camera(self, cam: dict) -> None:
         from fmapping.camera import PinholeCamera
-        from fmapping.tracking.frontend import DirectTracker
+        from fmapping.tracking.direct_tracker import DirectTracker
 
         self.camera_dict = dict(cam)
         self.camera = PinholeCamera.from_dict(cam)
@@ -702,6 +702,6 @@ def load_resume_state(path) -> Optional[list]:
 
 def load_tracker_config(path=None):
     from fmapping.config import load_config
-    from fmapping.tracking.frontend import TrackerConfig
+    from fmapping.tracking.direct_tracker import TrackerConfig
 
     return load_config(TrackerConfig(), path)

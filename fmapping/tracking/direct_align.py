@@ -27,57 +27,9 @@ from typing import Callable, Optional, Union
 
 import cv2
 import numpy as np
-import torch
 
 from fmapping.camera import PinholeCamera
-from fmapping.geometry import orthonormalize, rotation_angle
-
-
-# ----------------------------------------------------------------------------- small SE(3) helpers (numpy front-ends)
-def exp_se3(xi: np.ndarray) -> np.ndarray:
-    """se(3) twist (6,) (rho, phi) -> 4x4 float64.
-
-    The same map as :func:`fmapping.geometry.se3_exp` (tested against it), written
-    for one float64 6-vector in numpy because the torch version costs ~1 ms per call
-    and the optimiser calls it every iteration.
-    """
-    xi = np.asarray(xi, np.float64)
-    rho, phi = xi[:3], xi[3:]
-    th2 = float(phi @ phi)
-    if th2 < 1e-10:
-        a, b, c = 1 - th2 / 6, 0.5 - th2 / 24, 1 / 6 - th2 / 120
-    else:
-        th = math.sqrt(th2)
-        a, b, c = math.sin(th) / th, (1 - math.cos(th)) / th2, (th - math.sin(th)) / (th2 * th)
-    k = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
-    k2 = k @ k
-    out = np.eye(4)
-    out[:3, :3] += a * k + b * k2
-    out[:3, 3] = (np.eye(3) + b * k + c * k2) @ rho
-    return out
-
-
-def inv_pose(t: np.ndarray) -> np.ndarray:
-    """Inverse of a 4x4 rigid transform."""
-    out = np.eye(4)
-    out[:3, :3] = t[:3, :3].T
-    out[:3, 3] = -t[:3, :3].T @ t[:3, 3]
-    return out
-
-
-def scale_about(c2w: np.ndarray, center: np.ndarray, s: float) -> np.ndarray:
-    """The pose in a world scaled by ``s`` about ``center``: its camera centre ``t`` moves to
-    ``center + s * (t - center)``, its rotation stays."""
-    out = np.array(c2w, np.float64)
-    out[:3, 3] = center + s * (out[:3, 3] - center)
-    return out
-
-
-def pose_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
-    """(translation metres, rotation degrees) of ``inv(a) @ b``."""
-    d = inv_pose(a) @ b
-    ang = float(rotation_angle(torch.as_tensor(d[:3, :3])))
-    return float(np.linalg.norm(d[:3, 3])), math.degrees(ang)
+from fmapping.geometry import orthonormalize, se3_exp_np
 
 
 # ----------------------------------------------------------------------------- images
@@ -448,7 +400,7 @@ def align(ref: Reference, cur: Pyramid, t_init: np.ndarray, cfg: AlignConfig,
                 except np.linalg.LinAlgError:
                     lam *= 10
                     continue
-                t_new = exp_se3(step[:6]) @ t
+                t_new = se3_exp_np(step[:6]) @ t
                 ab_new = np.clip(ab + step[6:8], -np.asarray(cfg.affine_bound), np.asarray(cfg.affine_bound)) if cfg.affine else ab
                 r_new, jac_new, valid_new = warp_residuals(img, cam, ref.points, iref, t_new, ab_new, mask=msk)
                 if len(r_new) >= cfg.min_valid and _total_cost(r_new, k, ab_new, cfg) <= cost * (1 + 1e-9):

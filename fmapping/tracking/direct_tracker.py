@@ -1,8 +1,8 @@
 """Frame-to-keyframe tracking with motion prediction, loss detection, re-localisation and keyframe decisions.
 
-:class:`DirectTracker` wraps :func:`fmapping.tracking.direct.align`: it keeps the
+:class:`DirectTracker` wraps :func:`fmapping.tracking.direct_align.align`: it keeps the
 current reference keyframe (image + depth at selected pixels, see
-:func:`~fmapping.tracking.direct.make_reference`) and a few recent ones, predicts
+:func:`~fmapping.tracking.direct_align.make_reference`) and a few recent ones, predicts
 each new pose with a constant-velocity model, aligns, and judges the result:
 
 * **lost** when too few reference points are visible, the inlier ratio or the
@@ -27,10 +27,10 @@ from typing import Optional
 import numpy as np
 
 from fmapping.camera import PinholeCamera
-from fmapping.geometry import orthonormalize
-from fmapping.tracking.direct import (
-    AlignConfig, AlignResult, DepthSource, Reference, align, build_pyramid, image_valid_mask, inv_pose, make_reference,
-    pose_distance, reference_from_points, scale_about, to_gray,
+from fmapping.geometry import inv_pose, orthonormalize, pose_distance, scale_about
+from fmapping.tracking.direct_align import (
+    AlignConfig, AlignResult, DepthSource, Reference, align, build_pyramid, image_valid_mask, make_reference,
+    reference_from_points, to_gray,
 )
 
 

@@ -1,0 +1,73 @@
+"""Settings of the monocular front end (:class:`MonoConfig`); the package docstring of
+:mod:`fmapping.tracking.mono` says what each stage does."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fmapping.tracking.features import KltConfig
+from fmapping.tracking.loop import LoopConfig
+
+
+@dataclass
+class MonoConfig:
+    klt: KltConfig = field(default_factory=KltConfig)
+    init_min_parallax_deg: float = 1.0  # median parallax of the triangulated tracks to accept the bootstrap ...
+    init_min_parallax_px: float = 20.0  # ... and that parallax times the focal length (pixel noise matters);
+    init_fallback_parallax_px: float = 10.0  # accepted instead once fewer than 2 x init_min_points tracks survive
+    init_min_points: int = 60
+    init_max_frames: int = 60  # give up the bootstrap after this many frames
+    init_min_flow_px: float = 6.0  # median track length (scaled to a 320-px-wide image) before trying
+    ransac_px: float = 1.0
+    tri_min_parallax_deg: float = 1.0
+    tri_max_reproj_px: float = 2.0
+    min_ref_points: int = 40
+    unit_depth: float = 2.0  # scale convention without an anchor: median scene depth of the bootstrap
+    # keyframes in the bundle adjustment: 10 tracked as well as 7 or better on the synthetic rooms and on TUM fr1_rpy,
+    # and 14 no better than 10 (bench/results/mono_tuning.md).
+    window: int = 10
+    # Up to this many older keyframes that saw the window's landmarks join the BA, fixed. Off by default:
+    # they helped on four of five synthetic rooms but cost rotation accuracy on TUM fr1_rpy
+    # (bench/results/mono_tuning.md).
+    ba_fixed_observers: int = 0
+    ba: bool = True
+    ba_huber_px: float = 1.5
+    ba_max_nfev: int = 15
+    ba_outlier_px: float = 4.0  # observations beyond this after BA are dropped
+    # Add depth from ``extra_depth`` (the map) to new keyframes when given ... Off: the map's depth sits a
+    # little off the landmarks, which cost accuracy even gated as below, and ungated it derailed tracking
+    # (bench/results/mono_tuning.md).
+    dense_extra: bool = False
+    dense_max_gap: float = 0.05  # ... and when, at the landmarks' pixels, its median relative gap to the
+    dense_min_rendered: float = 0.5  # landmarks' depth is below this, with depth at this fraction of them
+    klt_from_keyframe: bool = True  # re-track from the keyframe image (chained positions as the guess): no KLT drift
+    # per-frame pose after direct alignment: "pnp" (reprojection of tracked landmarks) | "none"
+    pose_refine: str = "pnp"
+    reinit_after: int = 3  # consecutive lost frames after which the current frame becomes a keyframe
+    #                        with a constant-depth plane at the last median depth (reported as "reinit")
+    pnp_min_points: int = 30
+    pnp_recovery: bool = True  # a frame the direct alignment loses gets its pose from the landmarks (PnP + RANSAC)
+    pnp_inlier_px: float = 2.0
+    # With an anchor, its baseline sets the scale again at the first tracked frame with an anchor pose from
+    # frame first + late_anchor_frames - 1 on (15: frame 14, the end of the mapper's init window, where the
+    # map front end takes its scale): everything is scaled about the first camera centre then. The
+    # bootstrap's baseline is a few frames long, too short to fix the scale (TUM fr1_rpy:
+    # bench/results/mono_tuning.md). Given up (scale kept) after twice as many frames without one.
+    # 0: the bootstrap's scale stays.
+    late_anchor_frames: int = 15
+    late_anchor_factor_max: float = 10.0  # a refresh changing the scale by more (or less than 1/this) is refused
+    loop: LoopConfig = field(default_factory=LoopConfig)  # loop closure at keyframes (fmapping.tracking.loop)
+    # Rolling shutter: readout time from the first to the last row as a fraction of the frame interval
+    # (0: global shutter). Tracked pixels are unrolled (fmapping.tracking.rolling_shutter) before PnP,
+    # triangulation and bundle adjustment, with each frame's rotation since the previous one. Off by
+    # default: on TUM fr1_rpy, whose images prefer 0.85 (bench/tracking.py images_optimum), it improved the
+    # rotation but not the SE3 error, and on global-shutter frames it costs accuracy
+    # (bench/results/mono_tuning.md).
+    rolling_shutter: float = 0.0
+
+    def validate(self) -> None:
+        if not (np.isfinite(self.rolling_shutter) and 0.0 <= self.rolling_shutter <= 1.0):
+            raise ValueError(f"mono.rolling_shutter is the readout time as a fraction of the frame interval, "
+                             f"0 (global shutter) to 1, got {self.rolling_shutter}")
+        self.loop.validate()

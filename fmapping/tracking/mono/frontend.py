@@ -1,0 +1,362 @@
+"""The monocular front end (:class:`MonoFrontend`): per-frame tracking against keyframes with PnP
+recovery, keyframes and their bundle adjustment, the late anchor's rescale; see :mod:`fmapping.tracking.mono`."""
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Callable, Optional
+
+import numpy as np
+
+from fmapping.camera import PinholeCamera
+from fmapping.geometry import inv_pose, orthonormalize, pose_distance, scale_about
+from fmapping.tracking.direct_align import select_pixels, to_gray
+from fmapping.tracking.direct_tracker import DirectTracker, TrackerConfig, TrackResult
+from fmapping.tracking.features import (
+    REFERENCE_WIDTH, at_width, detect_corners, klt_track, pnp_ransac, refine_pnp, to_u8,
+)
+from fmapping.tracking.mono.bootstrap import Bootstrap
+from fmapping.tracking.mono.config import MonoConfig
+from fmapping.tracking.mono.loop_closing import LoopClosing
+from fmapping.tracking.mono.restart import Restart
+from fmapping.tracking.mono.store import KeyframeStore, Tracks
+from fmapping.tracking.rolling_shutter import rotation_step, unroll
+
+
+def moved_poses(held: dict, refined: dict, min_m: float = 1e-3, min_deg: float = 0.05) -> dict:
+    """The entries of ``refined`` ({frame: c2w}) whose frame is in ``held`` and whose pose moved from
+    the held one by more than ``min_m`` metres or ``min_deg`` degrees: the poses worth handing on
+    after a bundle adjustment (to a mapper, over the wire)."""
+    out = {}
+    for k, c2w in refined.items():
+        if k in held:
+            dt, dr = pose_distance(held[k], c2w)
+            if dt > min_m or dr > min_deg:
+                out[k] = c2w
+    return out
+
+
+class MonoFrontend(Bootstrap, LoopClosing, Restart):
+    """See :mod:`fmapping.tracking.mono`. Call :meth:`bootstrap` per frame until it returns poses, then
+    :meth:`track`. The bootstrap, loop closure and restarts are in its mixins
+    (:mod:`~fmapping.tracking.mono.bootstrap`, :mod:`~fmapping.tracking.mono.loop_closing`,
+    :mod:`~fmapping.tracking.mono.restart`), the keyframes and landmarks in its ``store``."""
+
+    def __init__(self, camera: PinholeCamera, tracker_cfg: Optional[TrackerConfig] = None,
+                 cfg: Optional[MonoConfig] = None):
+        self.camera = camera
+        self.cfg = cfg or MonoConfig()
+        self.cfg.validate()
+        self.tracker = DirectTracker(camera, tracker_cfg or TrackerConfig())
+        self.initialized = False
+        self.failed = False
+        self.init_info: dict = {}
+        self.store = KeyframeStore(camera, self.cfg)  # tracks, keyframes, landmarks, the BA window
+        self._buf: list = []  # bootstrap frames: (index, rgb)
+        self._last_gray: Optional[np.ndarray] = None
+        self._kf_index = -1
+        self._lost_run = 0
+        self.reinits: list = []
+        self.dense_checks: list = []  # per keyframe with extra depth: did it agree with the landmarks?
+        self._first_index = 0  # the bootstrap's first frame
+        self._anchor: Optional[Callable[[int], Optional[float]]] = None  # baseline source of the late anchor
+        self.late_anchor: Optional[dict] = None  # {"frame", "factor"} once the scale was taken again (or refused)
+        self.loops: list = []  # loop closures: {"frame", "keyframe", "inliers", "moved_m", "moved_deg", ...}
+        self.loops_refused: list = []  # verified loops whose correction was too large to trust
+        self._kf_images: dict = {}  # keyframe index -> grey image, for loop verification (bounded)
+        self._moved_all = False  # the last keyframe's update moved every keyframe (a loop closure)
+        self._step = np.zeros(3)  # the current frame's rotation since the previous one (camera frame)
+
+    def _geo(self, uv: np.ndarray) -> np.ndarray:
+        """Pixels of the current frame unrolled for the rolling shutter (``MonoConfig.rolling_shutter``)."""
+        return unroll(self.camera, uv, self._step, self.cfg.rolling_shutter)
+
+    # ================================================================== tracking
+    def track(self, index: int, rgb: np.ndarray,
+              extra_depth: Optional[Callable[[np.ndarray], Callable]] = None) -> TrackResult:
+        """Track a frame after the bootstrap. ``extra_depth(c2w)`` -> ``uv -> depth`` callable
+        (e.g. rendered from the map) adds dense points to new keyframes."""
+        if not self.initialized:
+            raise RuntimeError("MonoFrontend.track before a successful bootstrap")
+        if self._anchor is not None and index - self._first_index >= 2 * self.cfg.late_anchor_frames:
+            self.settle_scale(f"no tracked frame with an anchor pose in the first {2 * self.cfg.late_anchor_frames}")
+        gray = to_u8(rgb)
+        res = self.tracker.track(rgb)
+        if self.cfg.rolling_shutter and not res.lost:
+            hist = self.tracker.motion_history  # [previous frame, this frame]
+            if len(hist) == 2:
+                self._step = rotation_step(hist[0], hist[1])
+        self._klt(gray)
+        if res.lost and self.cfg.pnp_recovery:
+            res = self._recover(rgb, res)
+        if res.lost:
+            self._lost_run += 1
+            if self._lost_run >= self.cfg.reinit_after:
+                self._reinit(index, rgb, gray, res.c2w)
+                res.reason += f"; re-initialised at frame {index} (constant-depth keyframe)"
+                self.reinits.append(index)
+                self._lost_run = 0
+            return res
+        self._lost_run = 0
+        if self.cfg.pose_refine == "pnp":
+            t0 = time.perf_counter()
+            refined = self._pnp(res.c2w)
+            if refined is not None:
+                res.c2w = refined
+                self.tracker.correct_last(refined)
+            res.ms += (time.perf_counter() - t0) * 1000.0
+        self.store.rel[index] = (self._kf_index, inv_pose(self.store.kf_pose[self._kf_index]) @ res.c2w)
+        if res.need_keyframe:
+            t0 = time.perf_counter()
+            c2w = self._add_keyframe(index, rgb, gray, res.c2w)
+            try:
+                self._set_reference(index, rgb, gray, extra_depth)
+            except ValueError:
+                pass  # keep the old reference; the tracker asks again next frame
+            res.c2w = c2w
+            res.ms += (time.perf_counter() - t0) * 1000.0  # keyframe work counts as tracking time
+        if self._anchor is not None and index - self._first_index >= self.cfg.late_anchor_frames - 1:
+            res.c2w = self._late_anchor(index, res.c2w)
+        return res
+
+    def _late_anchor(self, index: int, c2w: np.ndarray) -> np.ndarray:
+        """Take the anchor's baseline again at frame ``index`` (see ``MonoConfig.late_anchor_frames``):
+        rescale everything about the first camera centre. Returns frame ``index``'s pose afterwards."""
+        c = self.cfg
+        base = self._anchor(index)
+        est = float(np.linalg.norm(c2w[:3, 3] - self._c2w0[:3, 3]))
+        if base is None:
+            return c2w  # no anchor pose for this frame: try the next one (see track)
+        if base <= 1e-4 or est <= 1e-9 or not 1 / c.late_anchor_factor_max <= base / est <= c.late_anchor_factor_max:
+            self.late_anchor = {"frame": int(index), "factor": 1.0,
+                                "refused": f"anchor baseline {base:.4g} against {est:.4g} estimated"}
+        else:
+            self.rescale(base / est)
+            self.late_anchor = {"frame": int(index), "factor": base / est}
+            c2w = scale_about(c2w, self._c2w0[:3, 3], base / est)
+        self._anchor = None
+        return c2w
+
+    @property
+    def scale_pending(self) -> bool:
+        """True while the front end waits for its late anchor."""
+        return self._anchor is not None
+
+    def settle_scale(self, why: str = "the sequence ended before it") -> None:
+        """Stop waiting for the late anchor: the scale stays (``late_anchor`` says why)."""
+        if self._anchor is not None:
+            self.late_anchor = {"frame": None, "factor": 1.0, "refused": why}
+            self._anchor = None
+
+    def rescale(self, s: float) -> None:
+        """Scale the front end's world by ``s`` about the first camera centre: keyframe poses,
+        landmarks, the poses of the frames relative to their keyframe, the tracker's references."""
+        self._scale_part(self._c2w0[:3, 3], s)
+
+    def _scale_part(self, c0: np.ndarray, s: float, kfs: Optional[set] = None) -> None:
+        """Scale by ``s`` about ``c0`` what belongs to keyframes ``kfs`` (default: everything): their
+        poses, the landmarks first seen by them, the frames stored relative to them (translations)
+        and the tracker's references of them (with everything, its motion model too)."""
+        self.store.scale_part(c0, s, kfs)
+        self.tracker.rescale(c0, s, frames=kfs)
+
+    # ================================================================== internals
+    def _klt(self, gray: np.ndarray) -> None:
+        tr = self.store.tracks
+        if tr is not None and len(tr):
+            new, ok = klt_track(self._last_gray, gray, tr.uv, self.cfg.klt)
+            kf_gray = getattr(self, "_kf_gray", None)
+            if self.cfg.klt_from_keyframe and kf_gray is not None and getattr(tr, "uv_kf", None) is not None:
+                # refine from the keyframe image: positions no longer accumulate frame-to-frame drift
+                ref, ok2 = klt_track(kf_gray, gray, tr.uv_kf, self.cfg.klt, guess=new)
+                good = ok2 & (np.linalg.norm(ref - new, axis=1) < 2.0)
+                new = np.where(good[:, None], ref, new)
+            tr.uv = new.astype(np.float64)
+            tr.geo = self._geo(tr.uv)
+            if getattr(tr, "uv_kf", None) is not None:
+                tr.uv_kf = tr.uv_kf[ok]
+            tr.keep(ok)
+        self._last_gray = gray
+
+    def _reinit(self, index: int, rgb, gray, c2w: np.ndarray) -> None:
+        from fmapping.tracking.direct_align import make_reference
+
+        med = self.tracker.reference.median_depth if self.tracker.reference is not None else self.cfg.unit_depth
+        cam = self.camera
+        depth = np.full((cam.height, cam.width), med if np.isfinite(med) else self.cfg.unit_depth, np.float32)
+        self.store.kf_pose[index] = np.asarray(c2w, np.float64).copy()
+        self.store.kf_rgb[index] = rgb
+        self.store.window = [index]
+        tcfg = self.tracker.cfg
+        ref = make_reference(rgb, depth, cam, self.store.kf_pose[index], tcfg.align.levels, tcfg.num_points,
+                             tcfg.min_grad, index, blur=tcfg.align.blur)
+        self.tracker.push_reference(ref)
+        self.tracker.reset_motion([self.store.kf_pose[index]])
+        self._kf_index = index
+        self.store.rel[index] = (index, np.eye(4))
+        tr = Tracks(detect_corners(gray, self.cfg.klt).astype(np.float64), index)
+        tr.uv_kf = tr.uv.astype(np.float32).copy()
+        self.store.tracks = tr
+        self._kf_gray = gray
+
+    def _recover(self, rgb: np.ndarray, lost: TrackResult) -> TrackResult:
+        """A frame the direct alignment lost: the pose from the tracked landmarks (PnP + RANSAC),
+        then the direct alignment again from there. When that still fails, the PnP pose is kept
+        and the frame becomes a keyframe (a fresh reference where the old one no longer fits)."""
+        pose = self._pnp_ransac()
+        if pose is None:
+            return lost
+        again = self.tracker.track(rgb, c2w_guess=pose)
+        why = f"lost ({lost.reason}); re-localised on the landmarks (PnP)"
+        if not again.lost:
+            return dataclasses.replace(again, relocalised=True, reason=why, ms=again.ms + lost.ms)
+        self.tracker.observe(pose)
+        return dataclasses.replace(lost, c2w=pose, lost=False, relocalised=True, need_keyframe=True,
+                                   reason=why + ", direct alignment still failing: new keyframe",
+                                   ms=lost.ms + again.ms)
+
+    def _pnp_ransac(self) -> Optional[np.ndarray]:
+        """Camera-to-world pose from the KLT-tracked landmarks alone (no prior), or None when fewer
+        than ``pnp_min_points`` inliers (within ``pnp_inlier_px`` per 320 pixels of image width) or
+        under half of the tracked landmarks agree."""
+        found = self.store.tracked_landmarks()
+        if found is None:
+            return None
+        x, uv = found
+        px = at_width(self.cfg.pnp_inlier_px, max(self.camera.width, REFERENCE_WIDTH))  # KLT noise grows with the size
+        found = pnp_ransac(self.camera, x, uv, px)
+        if found is None or found[1].sum() < max(self.cfg.pnp_min_points, 0.5 * len(x)):
+            return None
+        return orthonormalize(inv_pose(found[0]))
+
+    def _pnp(self, c2w: np.ndarray) -> Optional[np.ndarray]:
+        """Refine a pose on the reprojection error of the tracked landmarks (inliers of the given pose)."""
+        found = self.store.tracked_landmarks()
+        if found is None:
+            return None
+        x, uv = found
+        w2c = inv_pose(c2w)
+        y = x @ w2c[:3, :3].T + w2c[:3, 3]
+        z = np.where(y[:, 2] > 1e-6, y[:, 2], 1e-6)
+        cam = self.camera
+        proj = np.stack([cam.fx * y[:, 0] / z + cam.cx, cam.fy * y[:, 1] / z + cam.cy], -1)
+        inl = (y[:, 2] > 1e-3) & (np.linalg.norm(proj - uv, axis=1) < self.cfg.pnp_inlier_px)
+        if inl.sum() < self.cfg.pnp_min_points:
+            return None
+        refined = refine_pnp(cam, x[inl], uv[inl], w2c)
+        if refined is None:
+            return None
+        out = orthonormalize(inv_pose(refined))
+        dt, dr = pose_distance(out, c2w)
+        scale = self.tracker.reference.median_depth if self.tracker.reference is not None else 1.0
+        if dt > 0.1 * scale or dr > 5.0:
+            return None  # disagrees wildly with the photometric pose: keep that one
+        return out
+
+    def _add_keyframe(self, index: int, rgb: np.ndarray, gray: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+        """Frame ``index`` becomes a keyframe (:meth:`KeyframeStore.add_keyframe`); the window is
+        bundle-adjusted, loops are looked for, the motion model moves with the refined keyframe."""
+        c = self.cfg
+        self.store.add_keyframe(index, rgb, c2w)
+        self._moved_all = False
+        before = self.store.kf_pose[index].copy()
+        if c.ba:
+            self.store.run_ba()
+        if c.loop.enabled:
+            self._close_loop(index, gray)
+            self._kf_images[index] = gray
+            while len(self._kf_images) > c.loop.max_keyframe_images:
+                self._kf_images.pop(next(iter(self._kf_images)))
+        after = self.store.kf_pose[index]
+        # move the motion model with the refined keyframe
+        delta = after @ inv_pose(before)
+        self.tracker.reset_motion([delta @ p for p in self.tracker.motion_history])
+        return after
+
+    def _set_reference(self, index: int, rgb, gray, extra_depth=None) -> None:
+        c = self.cfg
+        tr = self.store.tracks
+        has = tr.lid >= 0
+        pts = self.store.cam_points(index, tr.lid[has], tr.uv[has])
+        if extra_depth is not None and c.dense_extra:
+            fn = extra_depth(self.store.kf_pose[index])
+            if self._dense_agrees(index, fn, pts):
+                dense = self._dense_points(rgb, fn)
+                if len(dense):
+                    pts = np.concatenate([pts, dense])
+        if len(pts) < c.min_ref_points:
+            raise ValueError(f"keyframe {index}: only {len(pts)} points with depth")
+        self.tracker.set_reference_points(rgb, pts, self.store.kf_pose[index], index)
+        self._kf_index = index
+        # restart tracks here: live ones continue, fresh corners start at this keyframe
+        newc = detect_corners(gray, c.klt, existing=tr.uv)
+        if len(newc):
+            tr.add(newc.astype(np.float64), index, self._geo(newc.astype(np.float64)))
+        tr.uv_kf = tr.uv.astype(np.float32).copy()
+        self._kf_gray = gray
+
+    def _dense_agrees(self, index: int, depth_fn, pts: np.ndarray, max_check: int = 300) -> bool:
+        """Does ``depth_fn`` (e.g. the map) agree with the landmarks ``pts`` (camera frame of keyframe
+        ``index``)? Checked at every keyframe: a map is wrong where it has not been trained yet (new
+        parts of the view, drift since), and one bad dense reference derails the tracker."""
+        c = self.cfg
+        check = {"frame": int(index), "landmarks": int(len(pts)), "used": False}
+        self.dense_checks.append(check)
+        if len(pts) < 20:
+            return False
+        p = pts[:: max(1, len(pts) // max_check)]
+        uv = np.stack([self.camera.fx * p[:, 0] / p[:, 2] + self.camera.cx,
+                       self.camera.fy * p[:, 1] / p[:, 2] + self.camera.cy], -1)
+        d = np.asarray(depth_fn(uv), np.float64)
+        ok = np.isfinite(d)
+        check["rendered"] = float(ok.mean())
+        if ok.mean() < c.dense_min_rendered:
+            return False
+        check["gap"] = float(np.median(np.abs(d[ok] - p[ok, 2]) / p[ok, 2]))
+        check["used"] = check["gap"] < c.dense_max_gap
+        return check["used"]
+
+    def _dense_points(self, rgb, depth_fn) -> np.ndarray:
+        cfg = self.tracker.cfg
+        uv = select_pixels(to_gray(rgb), cfg.num_points, cfg.min_grad).astype(np.float64)
+        z = np.asarray(depth_fn(uv), np.float64)
+        ok = np.isfinite(z) & (z > 1e-3)
+        uv, z = uv[ok], z[ok]
+        return np.stack([(uv[:, 0] - self.camera.cx) / self.camera.fx * z,
+                         (uv[:, 1] - self.camera.cy) / self.camera.fy * z, z], -1)
+
+    # ================================================================== results
+    @property
+    def keyframe_index(self) -> int:
+        return self._kf_index
+
+    def keyframe_poses(self) -> dict:
+        return {k: p.copy() for k, p in self.store.kf_pose.items()}
+
+    def poses(self, window_only: bool = False) -> dict:
+        """Every tracked frame's pose, moved with its bundle-adjusted keyframe. With ``window_only``
+        just the frames of the keyframes in the current BA window: the only ones the last BA moved."""
+        keep = set(self.store.window) if window_only else self.store.kf_pose
+        return {i: orthonormalize(self.store.kf_pose[k] @ rel) for i, (k, rel) in self.store.rel.items()
+                if k in keep and k in self.store.kf_pose}
+
+    def refined_poses(self) -> dict:
+        """The poses the last keyframe's update may have moved: those of the BA window's frames, or
+        every frame's after a loop closure. What to hand on to a mapper after a keyframe."""
+        return self.poses(window_only=not self._moved_all)
+
+    def poses_for(self, held: dict) -> dict:
+        """The front end's current poses of the frames in ``held`` ({frame: c2w} handed out
+        earlier, e.g. kept back while the scale was pending); a frame it has no pose for (a
+        lost one) keeps its held pose, moved with the late anchor's rescale."""
+        now = self.poses()
+        factor = (self.late_anchor or {}).get("factor", 1.0)
+        return {i: now[i] if i in now else scale_about(c2w, self._c2w0[:3, 3], factor) for i, c2w in held.items()}
+
+    def landmarks(self) -> np.ndarray:
+        return np.stack(self.store.lm) if self.store.lm else np.zeros((0, 3))
+
+    @property
+    def ba_stats(self) -> list:
+        """Per bundle adjustment: keyframes, points, observations, rms before / after, outliers, ms."""
+        return self.store.ba_stats

@@ -1,0 +1,111 @@
+"""Loop closure in the monocular front end: at a keyframe, an old keyframe the camera has come back to
+is verified on its landmarks and image; the keyframes since move by a pose graph, then a bundle adjustment."""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from fmapping.geometry import inv_pose, orthonormalize, pose_distance
+from fmapping.tracking.loop import LoopMatch, cross_check, locate_in_keyframe, loop_candidates
+from fmapping.tracking.posegraph import optimize_pose_graph
+
+
+class LoopClosing:
+    """Stage 4 of :mod:`fmapping.tracking.mono`. A mixin of :class:`~fmapping.tracking.mono.frontend.MonoFrontend`:
+    it works on the front end's state (``store``, ``tracker``, ``cfg``, the keyframe images ``_kf_images``) and
+    its ``_scale_part``."""
+
+    def _close_loop(self, index: int, gray: np.ndarray) -> None:
+        """Look for an old keyframe the camera has come back to (:mod:`fmapping.tracking.loop`); when
+        one verifies and disagrees with the chain, correct the keyframes since then (:meth:`_correct_loop`)."""
+        lc = self.cfg.loop
+        ref = self.tracker.reference
+        scale = ref.median_depth if ref is not None and np.isfinite(ref.median_depth) else self.cfg.unit_depth
+        for k in loop_candidates(self.store.kf_pose, index, scale, lc):
+            if k not in self._kf_images:
+                continue
+            seen = [(o[1], o[2], o[3]) for o in self.store.obs if o[0] == k]
+            if len(seen) < lc.min_points:
+                continue
+            lids = np.array([o[0] for o in seen], np.int64)
+            uv = np.array([o[1:] for o in seen], np.float64)
+            m = locate_in_keyframe(self.camera, self._kf_images[k], uv, np.stack([self.store.lm[i] for i in lids]),
+                                   self.store.kf_pose[k], gray, self.store.kf_pose[index], self.cfg.klt, lc)
+            if m is None:
+                continue
+            dt, dr = pose_distance(self.store.kf_pose[index], m.c2w)
+            rec = {"frame": int(index), "keyframe": int(k), "points": m.points, "inliers": m.inliers,
+                   "moved_m": dt, "moved_deg": dr}
+            if dt > lc.max_correction * scale:
+                rec["why"] = f"correction {dt:.3g} > {lc.max_correction} x median depth {scale:.3g}"
+                self.loops_refused.append(rec)
+                continue
+            if dt < lc.min_correction_m * scale and dr < lc.min_correction_deg:
+                return  # the chain already agrees with the old keyframe
+            if np.isfinite(lc.max_cross_deg):
+                cross = self._cross_check(k, index, m, gray)
+                if cross is not None:
+                    rec["cross_deg"], rec["cross_dist"] = cross[0], cross[1] / scale
+                if cross is None or cross[0] > lc.max_cross_deg or cross[1] > lc.max_cross_dist * scale:
+                    rec["why"] = (f"measured the other way round: {cross and round(cross[0], 3)} deg, "
+                                  f"{cross and round(cross[1] / scale, 4)} x median depth apart")
+                    self.loops_refused.append(rec)
+                    continue
+            rec.update(self._correct_loop(k, index, m, lids, scale))
+            self.loops.append(rec)
+            return
+
+    def _cross_check(self, old: int, index: int, m: LoopMatch, gray: np.ndarray) -> Optional[tuple]:
+        """The loop ``m`` (keyframe ``index`` in the map of keyframe ``old``) measured the other way
+        round, from keyframe ``index``'s own landmarks (:func:`~fmapping.tracking.loop.cross_check`)."""
+        seen = [(o[1], o[2], o[3]) for o in self.store.obs if o[0] == index]
+        if len(seen) < self.cfg.loop.min_points:
+            return None
+        lids = np.array([o[0] for o in seen], np.int64)
+        uv = np.array([o[1:] for o in seen], np.float64)
+        return cross_check(self.camera, self._kf_images[old], self.store.kf_pose[old], m, gray, uv,
+                           np.stack([self.store.lm[i] for i in lids]), self.store.kf_pose[index], self.cfg.klt,
+                           self.cfg.loop)
+
+    def _correct_loop(self, old: int, index: int, m: LoopMatch, old_lids: np.ndarray, scale: float) -> dict:
+        """Pose graph over the keyframes from ``old`` (fixed) to ``index``: the chain's relative poses
+        plus the loop edge ``old`` -> ``index`` (``m``, a :class:`~fmapping.tracking.loop.LoopMatch` on
+        the landmarks ``old_lids`` of keyframe ``old``). Landmarks move with their first keyframe;
+        then (``loop.loop_ba``, loops up to ``loop_ba_max_keyframes``) the loop's inliers become
+        observations of keyframe ``index``, the loop's keyframes are bundle-adjusted (the first two
+        fixed) and scaled back to the pose graph's size (``loop_ba_keep_scale``). The tracker's
+        references move with their keyframes; non-keyframes are stored relative to their keyframe."""
+        lc = self.cfg.loop
+        kfs = sorted(k for k in self.store.kf_pose if k >= old)
+        before = [self.store.kf_pose[k].copy() for k in kfs]
+        edges = [(a, a + 1, inv_pose(before[a]) @ before[a + 1]) for a in range(len(kfs) - 1)]
+        edges.append((0, len(kfs) - 1, inv_pose(before[0]) @ m.c2w))
+        after, stats = optimize_pose_graph(before, edges, [0], unit=scale)
+        corr = {}
+        for k, b, a in zip(kfs, before, after):
+            self.store.kf_pose[k] = orthonormalize(a)
+            corr[k] = self.store.kf_pose[k] @ inv_pose(b)
+        for lid, k in self.store.first_keyframes().items():
+            if k in corr:
+                self.store.lm[lid] = corr[k][:3, :3] @ self.store.lm[lid] + corr[k][:3, 3]
+        out = {"keyframes": len(kfs), "cost_before": stats["cost_before"], "cost_after": stats["cost_after"]}
+        out["ba"] = lc.loop_ba and len(kfs) <= lc.loop_ba_max_keyframes
+        if out["ba"]:
+            have = {int(o[1]) for o in self.store.obs if o[0] == index}
+            for lid, (u, v) in zip(old_lids[m.index], m.uv):
+                if int(lid) not in have:
+                    self.store.obs.append((index, int(lid), float(u), float(v)))
+            graph_size = self.store.spread_about(kfs, old)
+            self.store.run_ba(window=kfs, max_nfev=lc.loop_ba_max_nfev)
+            out["ba_scale"] = graph_size / max(self.store.spread_about(kfs, old), 1e-12)
+            out["ba_rms_px"] = self.store.ba_stats[-1]["rms_after_px"] if self.store.ba_stats else None
+        self.tracker.move_references({k: self.store.kf_pose[k] @ inv_pose(b) for k, b in zip(kfs, before)})
+        if out["ba"] and lc.loop_ba_keep_scale:
+            self._scale_keyframes(kfs, old, out["ba_scale"])
+        self._moved_all = True
+        return out
+
+    def _scale_keyframes(self, kfs: list, about: int, s: float) -> None:
+        """Scale what belongs to keyframes ``kfs`` by ``s`` about keyframe ``about``'s centre (:meth:`_scale_part`)."""
+        self._scale_part(self.store.kf_pose[about][:3, 3].copy(), s, set(kfs))

@@ -1,0 +1,204 @@
+"""The monocular front end's keyframe/landmark store: KLT tracks, keyframe poses and images,
+landmarks and their observations, frames stored relative to their keyframe, and the windowed
+bundle adjustment over them."""
+from __future__ import annotations
+
+import time
+from typing import Optional
+
+import numpy as np
+
+from fmapping.camera import PinholeCamera
+from fmapping.geometry import inv_pose, scale_about
+from fmapping.tracking.ba import bundle_adjust
+from fmapping.tracking.features import triangulate
+from fmapping.tracking.mono.config import MonoConfig
+
+
+class Tracks:
+    """KLT tracks: current pixel (``uv``, in the image; ``geo``, unrolled for a rolling shutter, the
+    one geometry uses), landmark id (-1: none), first keyframe and the (unrolled) pixel there."""
+
+    def __init__(self, uv: np.ndarray, kf: int):
+        n = len(uv)
+        self.uv = np.asarray(uv, np.float64).reshape(-1, 2).copy()
+        self.geo = self.uv
+        self.lid = np.full(n, -1, np.int64)
+        self.first_kf = np.full(n, kf, np.int64)
+        self.uv_first = self.uv.copy()
+        self.tid = np.arange(n)
+
+    def keep(self, mask: np.ndarray) -> None:
+        self.uv, self.geo, self.lid, self.first_kf, self.uv_first, self.tid = (
+            self.uv[mask], self.geo[mask], self.lid[mask], self.first_kf[mask], self.uv_first[mask], self.tid[mask])
+
+    def add(self, uv: np.ndarray, kf: int, geo: Optional[np.ndarray] = None) -> None:
+        n = len(uv)
+        geo = uv if geo is None else geo
+        self.uv = np.concatenate([self.uv, uv])
+        self.geo = np.concatenate([self.geo, geo])
+        self.lid = np.concatenate([self.lid, np.full(n, -1, np.int64)])
+        self.first_kf = np.concatenate([self.first_kf, np.full(n, kf, np.int64)])
+        self.uv_first = np.concatenate([self.uv_first, geo])
+        start = int(self.tid.max()) + 1 if len(self.tid) else 0
+        self.tid = np.concatenate([self.tid, np.arange(start, start + n)])
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+
+class KeyframeStore:
+    """What the bundle adjustment works on: keyframe poses (``kf_pose``, refined) and the window's
+    images, landmark world points (``lm``) and their observations ``(keyframe, landmark id, u, v)``
+    (``obs``; pixels unrolled for a rolling shutter), every tracked frame's pose relative to its
+    keyframe (``rel``), the BA window and the KLT tracks that feed it. Poses are camera-to-world."""
+
+    def __init__(self, camera: PinholeCamera, cfg: MonoConfig):
+        self.camera = camera
+        self.cfg = cfg
+        self.tracks: Optional[Tracks] = None
+        self.kf_pose: dict = {}  # keyframe index -> c2w (refined)
+        self.kf_rgb: dict = {}  # window keyframes' images
+        self.window: list = []  # keyframe indices in the BA window
+        self.lm: list = []  # landmark world points
+        self.obs: list = []  # (kf index, landmark id, u, v)
+        self.rel: dict = {}  # frame index -> (keyframe index, inv(c2w_kf) @ c2w)
+        self.ba_stats: list = []  # per bundle adjustment: keyframes, points, rms before / after, ms
+
+    def add_keyframe(self, index: int, rgb: np.ndarray, c2w: np.ndarray) -> None:
+        """Frame ``index`` becomes a keyframe at ``c2w``: tracks with a landmark add an observation,
+        the others are triangulated between their first keyframe and this one; it joins the BA
+        window (the oldest keyframe leaves it, with its image)."""
+        c = self.cfg
+        tr = self.tracks
+        self.kf_pose[index] = np.asarray(c2w, np.float64).copy()
+        self.kf_rgb[index] = rgb
+        # observations of known landmarks
+        has = tr.lid >= 0
+        for j in np.flatnonzero(has):
+            self.obs.append((index, int(tr.lid[j]), tr.geo[j, 0], tr.geo[j, 1]))
+        # triangulate the others between their first keyframe and this one
+        for kf in np.unique(tr.first_kf[~has]):
+            if kf not in self.kf_pose or kf == index:
+                continue
+            m = np.flatnonzero((~has) & (tr.first_kf == kf))
+            pts, ok = triangulate(self.camera, self.kf_pose[kf], c2w, tr.uv_first[m], tr.geo[m],
+                                  c.tri_min_parallax_deg, c.tri_max_reproj_px)
+            for j, p in zip(m[ok], pts[ok]):
+                lid = len(self.lm)
+                self.lm.append(p)
+                tr.lid[j] = lid
+                self.obs.append((int(kf), lid, tr.uv_first[j, 0], tr.uv_first[j, 1]))
+                self.obs.append((index, lid, tr.geo[j, 0], tr.geo[j, 1]))
+        self.window.append(index)
+        if len(self.window) > c.window:
+            old = self.window.pop(0)
+            self.kf_rgb.pop(old, None)
+
+    def cam_points(self, kf: int, lids: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """Camera-frame points at observed pixels ``uv`` with the depth of landmarks ``lids`` in keyframe ``kf``."""
+        if len(lids) == 0:
+            return np.zeros((0, 3))
+        w2c = inv_pose(self.kf_pose[kf])
+        x = np.stack([self.lm[i] for i in lids]) @ w2c[:3, :3].T + w2c[:3, 3]
+        z = x[:, 2]
+        ok = z > 1e-3
+        uv, z = uv[ok], z[ok]
+        cam = self.camera
+        return np.stack([(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z], -1)
+
+    def tracked_landmarks(self) -> Optional[tuple[np.ndarray, np.ndarray]]:
+        """World points and current pixels of the tracks with a landmark (None below ``pnp_min_points``)."""
+        tr = self.tracks
+        has = tr.lid >= 0
+        if has.sum() < self.cfg.pnp_min_points:
+            return None
+        return np.stack([self.lm[i] for i in tr.lid[has]]), tr.geo[has]
+
+    def first_keyframes(self) -> dict:
+        """{landmark id: the keyframe of its first remaining observation}: whose pose it moves with."""
+        first: dict = {}
+        for o in self.obs:
+            first.setdefault(int(o[1]), int(o[0]))
+        return first
+
+    def spread_about(self, kfs: list, about: int) -> float:
+        """Mean distance of the centres of keyframes ``kfs`` from keyframe ``about``'s."""
+        c0 = self.kf_pose[about][:3, 3]
+        return float(np.mean([np.linalg.norm(self.kf_pose[k][:3, 3] - c0) for k in kfs]))
+
+    def scale_part(self, c0: np.ndarray, s: float, kfs: Optional[set] = None) -> None:
+        """Scale by ``s`` about ``c0`` what belongs to keyframes ``kfs`` (default: everything): their
+        poses, the landmarks first seen by them, the frames stored relative to them (translations)
+        (the tracker's references are the front end's: :meth:`MonoFrontend._scale_part`)."""
+        first = None if kfs is None else self.first_keyframes()
+        for k in list(self.kf_pose):
+            if kfs is None or k in kfs:
+                self.kf_pose[k] = scale_about(self.kf_pose[k], c0, s)
+        for lid, p in enumerate(self.lm):
+            if kfs is None or first.get(lid) in kfs:
+                self.lm[lid] = c0 + s * (np.asarray(p) - c0)
+        for i, (k, rel) in self.rel.items():
+            if kfs is None or k in kfs:
+                rel = rel.copy()
+                rel[:3, 3] *= s
+                self.rel[i] = (k, rel)
+
+    def run_ba(self, fixed_all_but_points: bool = False, window: Optional[list] = None,
+                max_nfev: Optional[int] = None) -> None:
+        """Bundle adjustment of the keyframes ``window`` (default: the BA window; the first two fixed)
+        and the landmarks they observe, at most ``max_nfev`` iterations (default ``ba_max_nfev``)."""
+        c = self.cfg
+        win = list(self.window if window is None else window)
+        if not self.obs:
+            return
+        obs = np.array(self.obs, dtype=np.float64)
+        kf_of = obs[:, 0].astype(np.int64)
+        inwin = np.isin(kf_of, win)
+        extra: list = []
+        keep = inwin
+        if c.ba_fixed_observers > 0 and inwin.any():
+            # older keyframes that saw the window's landmarks join, fixed: their observations tie the
+            # window to the past (without them scale and rotation drift from window to window)
+            seen = np.isin(obs[:, 1].astype(np.int64), np.unique(obs[inwin, 1].astype(np.int64)))
+            older = np.unique(kf_of[seen & ~inwin])
+            extra = [int(k) for k in older[::-1][: c.ba_fixed_observers] if int(k) in self.kf_pose]
+            keep = inwin | (seen & np.isin(kf_of, extra))
+        obs = obs[keep]
+        if len(obs) == 0:
+            return
+        lids, inv = np.unique(obs[:, 1].astype(np.int64), return_inverse=True)
+        counts = np.bincount(inv)
+        keep = counts[inv] >= 2
+        obs, inv = obs[keep], inv[keep]
+        lids, inv = np.unique(obs[:, 1].astype(np.int64), return_inverse=True)
+        if len(lids) < 10:
+            return
+        kf_pos = {k: i for i, k in enumerate(win + extra)}
+        poses = [self.kf_pose[k] for k in win + extra]
+        fixed = list(range(len(win))) if fixed_all_but_points else list(range(min(2, len(win))))
+        fixed += list(range(len(win), len(win) + len(extra)))
+        t0 = time.perf_counter()
+        res = bundle_adjust(self.camera, poses, fixed, np.stack([self.lm[i] for i in lids]),
+                            np.array([kf_pos[int(k)] for k in obs[:, 0]]), inv, obs[:, 2:4],
+                            c.ba_huber_px, c.ba_max_nfev if max_nfev is None else max_nfev)
+        for k, p in zip(win, res.poses[: len(win)]):
+            self.kf_pose[k] = p
+        for i, p in zip(lids, res.points):
+            self.lm[int(i)] = p
+        # drop outlying observations (in the window)
+        bad = res.residual_px > c.ba_outlier_px
+        if bad.any():
+            badset = {(int(a), int(b)) for a, b in obs[bad][:, :2]}
+            self.obs = [o for o in self.obs if (int(o[0]), int(o[1])) not in badset]
+            bad_l = {b for _, b in badset}
+            tr = self.tracks
+            for j in np.flatnonzero(np.isin(tr.lid, list(bad_l))):
+                tr.lid[j] = -1  # re-triangulate later from this keyframe on
+                tr.first_kf[j] = win[-1]
+                tr.uv_first[j] = tr.geo[j]
+        self.ba_stats.append({"keyframes": len(win), "fixed_observers": len(extra), "points": int(len(lids)),
+                              "obs": int(len(obs)),
+                              "rms_before_px": float(np.sqrt(2 * res.cost_before / max(1, len(obs)))),
+                              "rms_after_px": float(np.sqrt(2 * res.cost_after / max(1, len(obs)))),
+                              "outliers": int(bad.sum()), "ms": (time.perf_counter() - t0) * 1000, "nfev": res.nfev})
