@@ -513,7 +513,8 @@ def tracker_state(core) -> dict:
         "waiting": list(core.waiting), "recent": list(core.recent), "camera": dict(core.camera_dict),
         "mapper_poses": {k: v.tobytes() for k, v in core.mapper_poses.items()},
         "own_poses": {k: (v.c2w.tobytes(), v.timestamp, v.quality) for k, v in core.own_poses.items()},
-        "snapshot_pose": None if core.snapshot_pose is None else (core.snapshot_pose[0], core.snapshot_pose[1].tobytes()),
+        "snapshot_pose": None if core.snapshot_pose is None else
+                         (core.snapshot_pose[0], core.snapshot_pose[1].tobytes()),
         "render_cfg": dict(core.render_cfg),
         "reference": None if core.tracker.reference is None else core.tracker.reference.frame_index,
     }

@@ -97,7 +97,8 @@ class Svc:
                 return st
             assert self.popen.poll() is None, f"{self.name} exited ({self.popen.returncode}) waiting for {what}:\n" \
                                               + self.log()[-3000:]
-            assert time.monotonic() < end, f"{self.name}: timed out waiting for {what}; status {st}\n" + self.log()[-3000:]
+            assert time.monotonic() < end, f"{self.name}: timed out waiting for {what}; status {st}\n" \
+                                           + self.log()[-3000:]
             time.sleep(0.05)
 
     def stop(self, sig=signal.SIGTERM, timeout: float = 30.0) -> tuple[int, float]:

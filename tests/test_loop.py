@@ -151,7 +151,7 @@ def test_cross_check_confirms_a_true_loop_and_measures_a_wrong_rotation(room320)
     whose rotation is 4 deg off is found about 4 deg away from the other way's measurement. Measured:
     0.06 deg for the true match; 0.99 / 1.91 / 3.99 deg for matches 1 / 2 / 4 deg off."""
     from fmapping.datasets import open_dataset
-    from fmapping.tracking.features import KltConfig, to_u8
+    from fmapping.tracking.features import KltConfig
     from fmapping.tracking.loop import LoopConfig, LoopMatch, cross_check, locate_in_keyframe
 
     ds = open_dataset(room320)
