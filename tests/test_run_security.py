@@ -112,6 +112,7 @@ def test_acl_policy_is_deny_by_default_and_pinned_to_the_namespace():
     assert [role for role, ks in puts.items() if f"fmapping/{NS}/frames" in ks] == ["play"]
 
 
+@pytest.mark.slow
 def test_a_session_without_the_run_credentials_cannot_join(run):
     creds, open_role = run
     mapper = open_role("mapper")

@@ -860,6 +860,7 @@ def test_fmapping_up_end_to_end(scene, tmp_path):
     assert len(pts) > 100 and ((pts > box[0] - 1e-3) & (pts < box[1] + 1e-3)).all()
 
 
+@pytest.mark.slow
 def test_fmapping_up_rgb_only_with_the_mono_tracker(room320, tmp_path):
     """The RGB-only multi-process loop: the tracker process poses every frame from the first
     (anchored by the GT poses play publishes), the mapper maps every frame with those poses."""
@@ -894,6 +895,7 @@ def test_fmapping_up_rgb_only_with_the_mono_tracker(room320, tmp_path):
     assert status["tracker"]["counters"].get("frames_lost", 0) == 0, status["tracker"]
 
 
+@pytest.mark.slow
 def test_fmapping_demo_runs_the_system_and_reports_its_metrics(tmp_path):
     """``fmapping demo`` (what ``make demo`` runs): the synthetic room, the multi-process system with
     tracker poses, and the trajectory / map scores against the scene's ground truth."""
