@@ -5,7 +5,7 @@ BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 DEMO    ?= out/demo
 
-.PHONY: venv test demo bench clean
+.PHONY: venv lint test test-fast demo bench clean
 
 venv: $(STAMP)
 
@@ -17,8 +17,16 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e '.[dev,bench]'
 	touch $(STAMP)
 
-test: $(STAMP)
+# ruff (pyproject.toml [tool.ruff]) first, then every test, the slow ones included
+lint: $(STAMP)
+	$(BIN)/ruff check fmapping services tests bench
+
+test: lint
 	$(BIN)/python -m pytest
+
+# the same without the tests marked slow (each over ~10 s here)
+test-fast: lint
+	$(BIN)/python -m pytest -m "not slow"
 
 demo: $(STAMP)
 	$(BIN)/fmapping demo --out $(DEMO)

@@ -231,7 +231,8 @@ def one_run(kind: str, scene: Path, cfg: Path, work: Path, rate: float, limit: f
     rec["restarts"] = up.get("restarts", {})
     counters = {n: s.get("counters", {}) for n, s in up.get("status", {}).items()}
     rec["bad_input"] = {n: int(c.get("bad_input", 0)) for n, c in counters.items() if c.get("bad_input")}
-    rec["tracker"] = {k: counters.get("tracker", {}).get(k) for k in ("resumed_at", "resume_keyframe", "bootstrap_frame")}
+    rec["tracker"] = {k: counters.get("tracker", {}).get(k)
+                      for k in ("resumed_at", "resume_keyframe", "bootstrap_frame")}
     if flood is not None:
         rec["flood"] = {"sent": flood.sent, "seconds": round(flood.t1 - flood.t0, 1),
                         "rate_per_s": round(flood.sent / max(1e-9, flood.t1 - flood.t0)),

@@ -107,7 +107,8 @@ def main(argv=None) -> dict:
     n_pts = a.rays * a.samples
     results = {}
     print(f"{a.rays} rays x {a.samples} samples, {a.threads} thread(s), torch {torch.__version__}")
-    print(f"{'variant':22s} {'params':>9s} {'flops/pt':>9s} {'colored':>8s} {'min s':>8s} {'median s':>9s} {'us/sample':>10s}")
+    print(f"{'variant':22s} {'params':>9s} {'flops/pt':>9s} {'colored':>8s} {'min s':>8s} {'median s':>9s} "
+          f"{'us/sample':>10s}")
     for variant in a.kinds.split(","):
         kind = variant.split("_")[0]
         threshold = None if variant.endswith("color_everywhere") else 1e-4

@@ -159,7 +159,8 @@ def speed(data: Path, frames: int, rounds: int, thread_counts: list[int]) -> dic
             times[str(t)].append(time.perf_counter() - t0)
     return {"frames_mapped": min(frames, len(ds)), "window_frames": len(ids), "rays_per_iter": cfg.rays_per_iter,
             "samples_per_ray": cfg.n_coarse + cfg.n_fine, "iters_per_window": cfg.iters_per_window,
-            "seconds": {t: {"min": float(np.min(v)), "median": float(np.median(v)), "all": v} for t, v in times.items()}}
+            "seconds": {t: {"min": float(np.min(v)), "median": float(np.median(v)), "all": v}
+                        for t, v in times.items()}}
 
 
 def plot(results: dict, path: Path) -> None:
@@ -235,7 +236,8 @@ def main(argv=None) -> int:
         res = speed(scene_dir(Path(a.scenes), a.seeds[0], a.frames, size), a.speed_frames, a.timing_rounds, [1, 2])
         res["cpu_load_at_end"] = list(os.getloadavg())
         for t, v in res["seconds"].items():
-            print(f"[bench] {t} thread(s): window update {v['min']:.2f} / {v['median']:.2f} s (min / median)", flush=True)
+            print(f"[bench] {t} thread(s): window update {v['min']:.2f} / {v['median']:.2f} s (min / median)",
+                  flush=True)
         out = Path(a.out).with_name("mapping_speed.json")
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(res, indent=2))
@@ -274,8 +276,9 @@ def main(argv=None) -> int:
                 kept[name] = hold[0]
             r["seed"] = seed
             runs.append(r)
-            print(f"[bench] {name} seed {seed}: window {r['window_seconds_min']:.2f}/{r['window_seconds_median']:.2f} s "
-                  f"(min/median), acc {r['accuracy_cm']:.2f} cm, comp {r['completion_cm']:.2f} cm, "
+            print(f"[bench] {name} seed {seed}: window {r['window_seconds_min']:.2f}/"
+                  f"{r['window_seconds_median']:.2f} s (min/median), acc {r['accuracy_cm']:.2f} cm, "
+                  f"comp {r['completion_cm']:.2f} cm, "
                   f"ratio {r['completion_ratio']:.1f} %, params {r['parameters']}", flush=True)
         results["variants"][name] = {"overrides": VARIANTS[name], "runs": runs, "mean": _mean(runs)}
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -403,7 +406,8 @@ def run_lego(lego_dir: Path, png: Optional[Path], overrides: Optional[dict] = No
         if j < 3:
             rows.append((imgs[i], out["rgb"], out["depth_normalized"]))
     if png is not None:
-        _held_out_figure(rows, png, f"NeRF-synthetic lego ({size}x{size}, black bg): novel-view PSNR {np.mean(vals):.2f} dB")
+        _held_out_figure(rows, png,
+                         f"NeRF-synthetic lego ({size}x{size}, black bg): novel-view PSNR {np.mean(vals):.2f} dB")
     return {"train_views": len(train), "test_views": len(test), "size": [size, size],
             "psnr_novel_views": float(np.mean(vals)), "seconds": time.perf_counter() - t0}
 

@@ -32,7 +32,6 @@ import contextlib
 import dataclasses
 import hashlib
 import inspect
-import json
 import os
 import platform
 import statistics
@@ -74,16 +73,19 @@ TARGETS = {
                      ("total_seconds", "total s", None, None, 0)],
     "7scenes_long": [("ate_sim3_cm", "ATE Sim3 cm", "<=", 5.0, 2),
                      ("loops_accepted", "loops accepted", None, None, 0),
-                     ("loops_contradicted", f"loops the GT contradicts (> {LOOP_MAX_M * 100:g} cm / {LOOP_MAX_DEG:g} deg)",
-                      "<=", 0, 0),
+                     ("loops_contradicted",
+                      f"loops the GT contradicts (> {LOOP_MAX_M * 100:g} cm / {LOOP_MAX_DEG:g} deg)", "<=", 0, 0),
                      ("window_seconds_median", "window s median", None, None, 2),
                      ("total_seconds", "total s", None, None, 0)],
     # per-seed values; the table shows the worst seed and every seed
-    "synth_map": [("completion_ratio", "completion ratio % (5 cm)", ">=", 92.0, 1), ("accuracy_cm", "accuracy cm", "<=", 2.5, 2),
+    "synth_map": [("completion_ratio", "completion ratio % (5 cm)", ">=", 92.0, 1),
+                  ("accuracy_cm", "accuracy cm", "<=", 2.5, 2),
                   ("window_seconds_median", "window s median", None, None, 2)],
-    "synth_slam": [("ate_sim3_cm", "ATE Sim3 cm", "<=", 2.0, 2), ("scale_error_pct", "abs(Sim3 scale - 1) %", "<=", 5.0, 2),
+    "synth_slam": [("ate_sim3_cm", "ATE Sim3 cm", "<=", 2.0, 2),
+                   ("scale_error_pct", "abs(Sim3 scale - 1) %", "<=", 5.0, 2),
                    ("completion_ratio_sim3", "completion ratio % after Sim3", None, None, 1)],
-    "tum_rpy": [("psnr_heldout", "held-out PSNR dB", ">=", 20.0, 2), ("window_seconds_median", "window s median", None, None, 2)],
+    "tum_rpy": [("psnr_heldout", "held-out PSNR dB", ">=", 20.0, 2),
+                ("window_seconds_median", "window s median", None, None, 2)],
     "lego": [("psnr_novel_views", "novel-view PSNR dB", ">=", 25.0, 2), ("seconds", "seconds", None, None, 0)],
 }
 
@@ -356,14 +358,18 @@ class Bench:
         return {**(QUICK_MAPPER if self.a.quick else {}), **self.res["variants"][variant]["applied"]}
 
     def map_config(self, tag: str, variant: str, extra: Optional[dict] = None) -> str:
-        return write_yaml(self.work / "configs" / f"{tag}_{variant}_map.yaml", {**self.mapper_overrides(variant), **(extra or {})})
+        return write_yaml(self.work / "configs" / f"{tag}_{variant}_map.yaml",
+                          {**self.mapper_overrides(variant), **(extra or {})})
 
     def slam_config(self, tag: str, variant: str) -> str:
-        return write_yaml(self.work / "configs" / f"{tag}_{variant}_slam.yaml", {"mapper": self.mapper_overrides(variant)})
+        return write_yaml(self.work / "configs" / f"{tag}_{variant}_slam.yaml",
+                          {"mapper": self.mapper_overrides(variant)})
 
     def save(self) -> None:
+        from fmapping.fileio import write_json
+
         self.out.parent.mkdir(parents=True, exist_ok=True)
-        self.out.write_text(json.dumps(self.res, indent=2, default=_json_default))
+        write_json(self.out, self.res, indent=2)
 
     def put(self, row: str, variant: str, value: dict) -> None:
         self.res["rows"].setdefault(row, {})[variant] = value
@@ -432,7 +438,8 @@ class Bench:
         if rec:
             r.update({f"{k}_sim3": rec.get(k) for k in ("accuracy_cm", "completion_cm", "completion_ratio")})
         r["picture"] = self.picture(f"{row}_{variant}", out, f"{folder}, slam RGB only ({variant}), map after the "
-                                    f"trajectory's Sim3: ATE {_f(r['ate_sim3_cm'])} cm", data / "gt_points.ply", gt, align)
+                                    f"trajectory's Sim3: ATE {_f(r['ate_sim3_cm'])} cm", data / "gt_points.ply", gt,
+                                    align)
         r["_stats"], r["_captured"], r["_est"], r["_gt"] = st, captured, est, gt
         return r
 
@@ -445,9 +452,11 @@ class Bench:
         st = r["_stats"]
         scale = (r["sim3_scale"] or 1.0, r["output_scale"] or 1.0)
         chk = check_loops(st.get("loop_closures") or [], r["_captured"], r["_est"], r["_gt"], *scale)
-        r.update({"loops_accepted": len(st.get("loop_closures") or []), "loops_refused": len(st.get("loops_refused") or []),
+        r.update({"loops_accepted": len(st.get("loop_closures") or []),
+                  "loops_refused": len(st.get("loops_refused") or []),
                   "loops_contradicted": chk["contradicted"], "loops": chk["loops"],
-                  "loop_check_scales": {"sim3": scale[0], "output": scale[1]}, "loop_capture": "on" if r["_captured"] is not None else "unavailable"})
+                  "loop_check_scales": {"sim3": scale[0], "output": scale[1]},
+                  "loop_capture": "on" if r["_captured"] is not None else "unavailable"})
         self.put("7scenes_long", variant, _public(r))
 
     # -- 4. synthetic rooms
@@ -482,7 +491,8 @@ class Bench:
                  "points": st["summary"].get("points"), "psnr_heldout": st.get("psnr_heldout"), **window_seconds(st),
                  "aabb": st.get("aabb"),
                  **{k: (rec or {}).get(k) for k in ("accuracy_cm", "completion_cm", "completion_ratio")}}
-            r["picture"] = self.picture(f"synth_map_s{seed}_{variant}", out, f"synthetic seed {seed} ({used}), map with "
+            r["picture"] = self.picture(f"synth_map_s{seed}_{variant}", out,
+                                        f"synthetic seed {seed} ({used}), map with "
                                         f"GT poses ({variant}): acc {_f(r['accuracy_cm'])} cm, ratio "
                                         f"{_f(r['completion_ratio'], 1)} %", Path(ds.meta["gt_visible_cloud"]),
                                         list(ds.gt_poses))
@@ -533,7 +543,8 @@ class Bench:
         st = run_map(map_args(data, out, self.map_config("tum", variant), nf))
         r = {"frames": st["summary"]["frames"], "psnr_heldout": st.get("psnr_heldout"),
              "total_seconds": time.perf_counter() - t0, **window_seconds(st)}
-        r["picture"] = self.picture(f"tum_rpy_{variant}", out, f"TUM fr1_rpy, map with GT poses ({variant}), no GT cloud",
+        r["picture"] = self.picture(f"tum_rpy_{variant}", out,
+                                    f"TUM fr1_rpy, map with GT poses ({variant}), no GT cloud",
                                     None, list(open_dataset(data, max_frames=nf).gt_poses))
         self.put("tum_rpy", variant, r)
 
@@ -591,7 +602,8 @@ def table_rows(res: dict) -> list[dict]:
     for row in ROWS:
         for variant, r in (res["rows"].get(row) or {}).items():
             if "error" in r:
-                out.append({"row": row, "variant": variant, "measure": "error", "value": r["error"], "target": "", "met": "no"})
+                out.append({"row": row, "variant": variant, "measure": "error", "value": r["error"], "target": "",
+                            "met": "no"})
                 continue
             for key, label, op, target, nd in TARGETS[row]:
                 tgt = "" if op is None else f"{op} {target:g}"
@@ -608,7 +620,8 @@ def table_rows(res: dict) -> list[dict]:
                 else:
                     v = r.get(key)
                     value, met, label_ = _f(v, nd), _met(v, op, target), label
-                out.append({"row": row, "variant": variant, "measure": label_, "value": value, "target": tgt, "met": met})
+                out.append({"row": row, "variant": variant, "measure": label_, "value": value, "target": tgt,
+                            "met": met})
     return out
 
 
@@ -640,14 +653,6 @@ def print_table(res: dict) -> None:
 
 def _public(r: dict) -> dict:
     return {k: v for k, v in r.items() if not k.startswith("_")}
-
-
-def _json_default(o):
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)
 
 
 def main(argv=None) -> int:

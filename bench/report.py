@@ -108,8 +108,9 @@ def mapping_section() -> str:
                 continue  # the same CP run as in mapping.json
             for r in v["runs"]:
                 t = ei.get(name)
-                rows.append([f"{name} ({extra}.json)", r["seed"], f"{r['parameters']:,}", fmt(r["completion_ratio"], 1, " %"),
-                             fmt(r["accuracy_cm"]), fmt(r["completion_cm"]), fmt(r.get("psnr_heldout"), 1),
+                rows.append([f"{name} ({extra}.json)", r["seed"], f"{r['parameters']:,}",
+                             fmt(r["completion_ratio"], 1, " %"), fmt(r["accuracy_cm"]), fmt(r["completion_cm"]),
+                             fmt(r.get("psnr_heldout"), 1),
                              f"{fmt(r['window_seconds_min'])} / {fmt(r['window_seconds_median'])}",
                              f"{fmt(t['min'])} / {fmt(t['median'])}" if t else "-",
                              fmt(r.get("init_seconds"), 0), fmt(r.get("export_seconds"), 0)])
@@ -130,7 +131,8 @@ def mapping_section() -> str:
         rows = []
         if "tum_fr1_rpy" in real:
             t = real["tum_fr1_rpy"]
-            rows.append(["TUM fr1_rpy (GT poses, RGB only)", f"{t['frames']} frames", f"held-out PSNR {fmt(t['psnr_heldout'], 1)} dB",
+            rows.append(["TUM fr1_rpy (GT poses, RGB only)", f"{t['frames']} frames",
+                         f"held-out PSNR {fmt(t['psnr_heldout'], 1)} dB",
                          f"{fmt(t.get('window_seconds_min'))} / {fmt(t.get('window_seconds_median'))}"])
         if "lego" in real:
             t = real["lego"]
@@ -192,8 +194,8 @@ def tracking_section() -> str:
                        f"{fmt(o['none']['rot_first_mean_deg'])} deg from the first GT pose / "
                        f"{fmt(o['none']['rot_fit_mean_deg'])} deg best-fit, {fmt(r['median_px'])} px median")
                 if "anchored" in r:
-                    txt += (f", SE3 {fmt(r['anchored']['se3']['rmse_m'] * 100)} cm with the scale of the GT baseline to "
-                            f"frame {r['anchored']['frame']}")
+                    txt += (f", SE3 {fmt(r['anchored']['se3']['rmse_m'] * 100)} cm with the scale of the GT baseline "
+                            f"to frame {r['anchored']['frame']}")
                 if "apart_from_first" in r:
                     a = r["apart_from_first"]
                     txt += (f", {fmt(a['sim3_rmse_m'] * 100)} cm / {fmt(a['rot_first_mean_deg'])} deg from the "
@@ -211,9 +213,11 @@ def tracking_section() -> str:
                     se3 = fmt(r["anchored"]["se3"]["rmse_m"] * 100) if "anchored" in r else "-"
                     cells.append(f"{readout}: cost {fmt(r['cost'], 0)}, Sim3 {fmt(o['sim3']['rmse_m'] * 100)} cm, "
                                  f"SE3 (anchored) {se3} cm, "
-                                 f"rotation {fmt(o['none']['rot_first_mean_deg'])} / {fmt(o['none']['rot_fit_mean_deg'])} deg")
-                out.append(f"The same from {start} with the tracks unrolled for a rolling shutter, by readout (fraction "
-                           "of the frame interval): " + "; ".join(cells) + f". The images prefer {opt['best_readout']}.")
+                                 f"rotation {fmt(o['none']['rot_first_mean_deg'])} / "
+                                 f"{fmt(o['none']['rot_fit_mean_deg'])} deg")
+                out.append(f"The same from {start} with the tracks unrolled for a rolling shutter, by readout "
+                           "(fraction of the frame interval): " + "; ".join(cells)
+                           + f". The images prefer {opt['best_readout']}.")
     spreads = (("mono_spread", "Mono"), ("mono_rolling_shutter_spread", "Mono with the rolling shutter"))
     for data_name, block in d.items():
         for key, what in spreads:
@@ -222,12 +226,14 @@ def tracking_section() -> str:
                 continue
             rng = lambda k, u: f"{fmt(sp[k]['median'])} {u} ({fmt(sp[k]['min'])}-{fmt(sp[k]['max'])})"  # noqa: E731
             out.append(f"{what}, {data_name}, over {sp['runs']} runs (the frames as they are and with "
-                       f"{sp['perturbation']}), median (min-max): SE3 {rng('se3_cm', 'cm')}, Sim3 {rng('sim3_cm', 'cm')}, "
-                       f"rotation from the first GT pose {rng('rot_first_deg', 'deg')}, best-fit {rng('rot_fit_deg', 'deg')}.")
+                       f"{sp['perturbation']}), median (min-max): SE3 {rng('se3_cm', 'cm')}, "
+                       f"Sim3 {rng('sim3_cm', 'cm')}, rotation from the first GT pose {rng('rot_first_deg', 'deg')}, "
+                       f"best-fit {rng('rot_fit_deg', 'deg')}.")
     al = d.get("ba_allocator")
     if al and "glibc_default" in al:
         out.append("\nMono front end, synthetic, allocator (`fmapping.runtime`): mean ms per frame "
-                   f"{fmt(al['glibc_default'].get('ms_mean'), 1)} (BA median {fmt(al['glibc_default'].get('ba_ms_median'), 0)} ms) "
+                   f"{fmt(al['glibc_default'].get('ms_mean'), 1)} "
+                   f"(BA median {fmt(al['glibc_default'].get('ba_ms_median'), 0)} ms) "
                    f"with glibc's default, {fmt(al['retain_freed_memory'].get('ms_mean'), 1)} "
                    f"(BA {fmt(al['retain_freed_memory'].get('ba_ms_median'), 0)} ms) with freed memory retained.")
     return "\n".join(out) + "\n"
@@ -243,17 +249,20 @@ def slam_section() -> str:
     for seed, r in d["runs"].items():
         cm = lambda k: fmt(r[k] * 100) if r.get(k) is not None else "-"  # noqa: E731
         pct = lambda k: fmt(r.get(k), 1, " %") if r.get(k) is not None else "-"  # noqa: E731
-        rows.append([seed, cm("ate_sim3_rmse_m"), cm("ate_se3_rmse_m"), cm("ate_none_rmse_m"), fmt(r.get("ate_rot_fit_deg")),
-                     r.get("tracking_loss_events"), r.get("loop_closures", "-"), pct("completion_ratio"), fmt(r.get("accuracy_cm")),
-                     pct("completion_ratio_sim3"), fmt(r.get("accuracy_cm_sim3")), fmt(r.get("completion_cm_sim3"))])
+        rows.append([seed, cm("ate_sim3_rmse_m"), cm("ate_se3_rmse_m"), cm("ate_none_rmse_m"),
+                     fmt(r.get("ate_rot_fit_deg")), r.get("tracking_loss_events"), r.get("loop_closures", "-"),
+                     pct("completion_ratio"), fmt(r.get("accuracy_cm")), pct("completion_ratio_sim3"),
+                     fmt(r.get("accuracy_cm_sim3")), fmt(r.get("completion_cm_sim3"))])
     return "\n".join([
         "### SLAM loop (`bench/slam.py` -> `slam.json`)\n",
         f"`fmapping slam` RGB only on synthetic rooms ({st.get('frames')} frames, {size}), one run per seed, "
-        f"run {d.get('date', '')}; scale anchored by the GT baseline of the bootstrap and again at frame 14; loops closed back at an old keyframe. Map scores against the "
+        f"run {d.get('date', '')}; scale anchored by the GT baseline of the bootstrap and again at frame 14; "
+        "loops closed back at an old keyframe. Map scores against the "
         "visible GT cloud (5 cm), unaligned and after the trajectory's Sim3. "
         "Targets: Sim3 ATE <= 2 cm, completion ratio >= 85 % (seeds 0-2; 3 and 4 held out).\n",
         table(["seed", "ATE Sim3 cm", "ATE SE3 cm", "ATE unaligned cm", "rot. err deg (best fit)", "losses",
-               "loops closed", "compl. ratio", "acc. cm", "after Sim3: compl. ratio", "acc. cm", "compl. cm"], rows)]) + "\n"
+               "loops closed", "compl. ratio", "acc. cm", "after Sim3: compl. ratio", "acc. cm", "compl. cm"],
+              rows)]) + "\n"
 
 
 def real_section() -> str:
@@ -262,7 +271,8 @@ def real_section() -> str:
     if d is None:
         return ""
     st = d.get("settings", {})
-    variants = "; ".join(f"`{v}`: mapper overrides {x.get('applied') or 'none'}" for v, x in d.get("variants", {}).items())
+    variants = "; ".join(f"`{v}`: mapper overrides {x.get('applied') or 'none'}"
+                         for v, x in d.get("variants", {}).items())
     rows = [[t["row"], t["variant"], t["measure"], t["value"], t["target"], t["met"]] for t in d.get("table", [])]
     skipped = "".join(f" `{r}` skipped: {why}." for r, why in d.get("skipped", {}).items())
     return "\n".join([
@@ -270,7 +280,8 @@ def real_section() -> str:
         f"Rows {', '.join(st.get('rows', []))} (7-Scenes redkitchen dev 200 / long 700 frames, synthetic seeds "
         f"{st.get('seeds')}, TUM fr1_rpy, NeRF lego), RGB only, run {d.get('date', '')}"
         f"{' (--quick)' if st.get('quick') else ''}; "
-        f"variants side by side in one process ({variants}). Synthetic rows: the worst seed against the target.{skipped}\n",
+        f"variants side by side in one process ({variants}). "
+        f"Synthetic rows: the worst seed against the target.{skipped}\n",
         table(["row", "variant", "measure", "value", "target", "met"], rows)]) + "\n"
 
 

@@ -74,7 +74,8 @@ def main(argv=None) -> int:
         r = run_seed(seed, a.frames, size, Path(a.scenes), Path(a.work), not a.no_export)
         res["runs"][str(seed)] = r
         pct = lambda v: "-" if v is None else f"{v:.1f} %"  # noqa: E731
-        print(f"[slam] seed {seed}: ATE sim3 {r['ate_sim3_rmse_m'] * 100:.2f} cm, se3 {r['ate_se3_rmse_m'] * 100:.2f} cm, "
+        print(f"[slam] seed {seed}: ATE sim3 {r['ate_sim3_rmse_m'] * 100:.2f} cm, "
+              f"se3 {r['ate_se3_rmse_m'] * 100:.2f} cm, "
               f"losses {r['tracking_loss_events']}, completion ratio {pct(r['completion_ratio'])} "
               f"(after Sim3 {pct(r['completion_ratio_sim3'])}) in {time.perf_counter() - t0:.0f} s", flush=True)
     res["cpu_load_at_end"] = list(os.getloadavg())

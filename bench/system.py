@@ -328,8 +328,8 @@ def summarize(fps: float, rows: list[dict], mon: Monitor, out: Path, scene: Path
             "skipped": int(tc.get("frames_skipped", 0)), "dropped": int(tc.get("dropped_frames", 0)),
             "usable_poses": sum(1 for v in mon.tracker.values() if v[1] is None or v[1] > 0),
             "lag_frames_max": max((r.get("tracker_lag_frames", 0) for r in rows), default=0),
-            "lag_frames_mean_during_playback": round(float(np.mean([r.get("tracker_lag_frames", 0) for r in during])), 2)
-            if during else None,
+            "lag_frames_mean_during_playback":
+            round(float(np.mean([r.get("tracker_lag_frames", 0) for r in during])), 2) if during else None,
             "lag_s_max": max((r.get("tracker_lag_s", 0.0) for r in rows), default=0.0),
             "latency_s_all_poses": _stats(trk_lat), "latency_s_usable_poses": _stats(tracked_lat),
             "track_ms_last": float(tc.get("track_ms", 0.0)),
@@ -337,10 +337,11 @@ def summarize(fps: float, rows: list[dict], mon: Monitor, out: Path, scene: Path
         "mapper": {
             "received": int(mc.get("frames_received", 0)), "mapped": int(mc.get("frames_processed", 0)),
             "windows": int(mc.get("windows", 0)), "dropped_inbox": int(mc.get("dropped_frames", 0)),
-            "without_pose": int(mc.get("frames_without_pose", 0)), "skipped_unusable_pose": int(mc.get("frames_skipped", 0)),
+            "without_pose": int(mc.get("frames_without_pose", 0)),
+            "skipped_unusable_pose": int(mc.get("frames_skipped", 0)),
             "windows_behind_max": max((r.get("windows_behind", 0.0) for r in rows), default=0.0),
-            "windows_behind_mean_during_playback": round(float(np.mean([r.get("windows_behind", 0.0) for r in during])), 2)
-            if during else None,
+            "windows_behind_mean_during_playback":
+            round(float(np.mean([r.get("windows_behind", 0.0) for r in during])), 2) if during else None,
             "windows_behind_at_playback_end": next((r.get("windows_behind") for r in rows
                                                     if play_end is not None and r["t"] >= play_end), None),
             "latency_s_first_window_pose": _stats(map_lat),
@@ -536,7 +537,8 @@ def main(argv=None) -> int:
         a.frames, size, view, mapper_cfg = 24, (160, 120), False, dict(QUICK_MAPPER)
         a.max_seconds = min(a.max_seconds, 90.0)
     work = Path(a.work)
-    out = Path(a.out) if a.out else (work / "system_quick.json" if a.quick else ROOT / "bench" / "results" / "system.json")
+    out = Path(a.out) if a.out else (work / "system_quick.json" if a.quick
+                                     else ROOT / "bench" / "results" / "system.json")
     work.mkdir(parents=True, exist_ok=True)
     t_all = time.monotonic()
     scene = make_scene(work, a.frames, size, a.seed)

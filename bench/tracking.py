@@ -221,8 +221,8 @@ def images_optimum(frames, camera, starts: dict, readouts=(0.3, 0.6, 0.85, 1.0))
     for name, start in starts.items():
         t0 = time.perf_counter()
         poses, info = best_explaining_poses(camera, tracks, start, depths)
-        r = {**info, "seconds": time.perf_counter() - t0, "start": _ate(list(start), gt), "optimum": _ate(list(poses), gt),
-             "anchored": anchored_ate(poses, gt)}
+        r = {**info, "seconds": time.perf_counter() - t0, "start": _ate(list(start), gt),
+             "optimum": _ate(list(poses), gt), "anchored": anchored_ate(poses, gt)}
         if first is None:
             first = poses
         else:

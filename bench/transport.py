@@ -165,7 +165,8 @@ def main(argv=None) -> int:
     load = os.getloadavg()
     report = {
         "machine": {"platform": platform.platform(), "python": platform.python_version(), "cpus": os.cpu_count(),
-                    "processor": platform.processor() or platform.machine(), "loadavg_at_start": [round(x, 2) for x in load]},
+                    "processor": platform.processor() or platform.machine(),
+                    "loadavg_at_start": [round(x, 2) for x in load]},
         "zenoh": getattr(zenoh, "__version__", None) or _pkg_version("eclipse-zenoh"),
         "msgpack": _pkg_version("msgpack"),
         "setup": "two processes, zenoh peers on tcp/127.0.0.1, multicast off; latency paced every "

@@ -23,7 +23,7 @@ from service_helpers import ROOT, subprocess_env
 # within a minute on one thread (an undisturbed 48-frame run there, 32 s, completion ratio 26-28 %
 # after Sim3). The tests' SMALL_MAPPER leaves no map to compare.
 sys.path.insert(0, str(ROOT / "bench"))
-from faults import BENCH_MAPPER as FAULT_MAPPER  # noqa: E402
+from faults import BENCH_MAPPER as FAULT_MAPPER  # noqa: E402, F401
 
 
 @dataclass

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from fakes import fake_up
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -303,19 +305,7 @@ def test_up_takes_a_live_camera_with_its_intrinsics_and_passes_them_to_play(tmp_
     assert main(["up", "--data", "camera:front", "--camera", "500,500,320,240", "--out", str(out)]) == 2
     assert "camera:N" in capsys.readouterr().err
 
-    started = {}
-
-    class FakeProc:  # records what would run; no process starts
-        def __init__(self, name, argv, out, env):
-            started[name] = argv
-
-        def close(self):
-            pass
-
-    monkeypatch.setattr(launcher, "Proc", FakeProc)
-    monkeypatch.setattr(launcher, "_wait_ready", lambda procs, timeout: None)
-    monkeypatch.setattr(launcher, "_monitor", lambda procs, *a, **k: 0)
-    monkeypatch.setattr(launcher, "_stop_all", lambda *a, **k: None)
+    started = fake_up(monkeypatch)  # records what would run; no process starts
     opened = []
     monkeypatch.setattr("fmapping.datasets.open_dataset", lambda *a, **k: opened.append(a) or None)
     assert main(["up", "--data", "camera:0", "--camera", "500,500,320,240", "--poses", "gt", "--view", "save",

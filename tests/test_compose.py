@@ -166,7 +166,8 @@ def test_viewer_serves_live_on_loopback_ports_and_saves(compose):
     args = view.add_args(service_parser("view", "")).parse_args(argv)
     assert view.serving(args) and args.serve and args.bind == "0.0.0.0"  # reachable through the published ports
     assert args.save == "/out/run.rrd" and args.final_outputs == "/out"
-    assert svc["ports"] == [f"127.0.0.1:{args.web_port}:{args.web_port}", f"127.0.0.1:{args.grpc_port}:{args.grpc_port}"]
+    assert svc["ports"] == [f"127.0.0.1:{args.web_port}:{args.web_port}",
+                            f"127.0.0.1:{args.grpc_port}:{args.grpc_port}"]
     assert (args.web_port, args.grpc_port) == (9090, 9876)
     for name, other in compose["services"].items():  # every published port is on the host's loopback only
         for port in other.get("ports", []):

@@ -96,7 +96,8 @@ def test_best_explaining_poses_finds_the_images_trajectory_from_a_wrong_start(ro
     rng = np.random.default_rng(0)
     start = gt.copy()
     for i in range(1, len(gt)):
-        start[i, :3, :3] = Rotation.from_rotvec(np.radians(1.0) * rng.normal(size=3) / np.sqrt(3)).as_matrix() @ gt[i, :3, :3]
+        start[i, :3, :3] = Rotation.from_rotvec(np.radians(1.0) * rng.normal(size=3) / np.sqrt(3)).as_matrix() \
+            @ gt[i, :3, :3]
         start[i, :3, 3] += 0.02 * rng.normal(size=3) / np.sqrt(3)
     before = ate(start, gt, "sim3")
     assert before["rmse_m"] > 0.012 and before["rot_first_mean_deg"] > 0.7  # measured 1.58 cm, 0.91 deg

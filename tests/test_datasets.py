@@ -160,8 +160,8 @@ def test_interpolate_poses_matches_analytic_trajectory_at_100hz():
     de_n, re_n = _pose_errors(ref[j], want)
     assert de_n.max() > 2e-3 and re_n.max() > 0.1, (de_n.max(), re_n.max())
     # proper rigid poses
-    np.testing.assert_allclose(got[:, :3, :3] @ np.swapaxes(got[:, :3, :3], 1, 2), np.broadcast_to(np.eye(3), (500, 3, 3)),
-                               atol=1e-12)
+    np.testing.assert_allclose(got[:, :3, :3] @ np.swapaxes(got[:, :3, :3], 1, 2),
+                               np.broadcast_to(np.eye(3), (500, 3, 3)), atol=1e-12)
     np.testing.assert_array_equal(got[:, 3], np.broadcast_to([0.0, 0.0, 0.0, 1.0], (500, 4)))
 
 

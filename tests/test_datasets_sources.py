@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from fakes import FakeSession, fake_up
 from fmapping.camera import PinholeCamera
 from fmapping.datasets import DatasetError, LiveCamera, detect_kind, open_dataset
 
@@ -206,7 +207,8 @@ def _euroc(root, n=3):
            "b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]"]
     for t, p, deg in rows:
         h = np.deg2rad(deg) / 2
-        out.append(",".join([str(t), *map(repr, p), repr(float(np.cos(h))), "0.0", "0.0", repr(float(np.sin(h)))] + ["0.0"] * 9))
+        out.append(",".join([str(t), *map(repr, p), repr(float(np.cos(h))), "0.0", "0.0", repr(float(np.sin(h)))]
+                            + ["0.0"] * 9))
     gt.write_text("\n".join(out) + "\n")
     return ns, grey
 
@@ -391,21 +393,11 @@ def test_play_streams_a_live_camera_to_its_end(tmp_path):
     from services import common as C
     from services.io import play
 
-    class Session:  # records what would go on the bus
-        def __init__(self):
-            self.puts = []
-
-        def declare_publisher(self, key, **kw):
-            return type("Pub", (), {"put": lambda _, data: self.puts.append((key, data)), "undeclare": lambda _: None})()
-
-        def declare_subscriber(self, key, cb):
-            return type("Sub", (), {"undeclare": lambda _: None})()
-
     _video(tmp_path / "clip.mp4")
     live = LiveCamera(str(tmp_path / "clip.mp4"), camera="50,50,31.5,23.5", max_frames=4)
     args = play.add_args(argparse.ArgumentParser()).parse_args(
         ["--data", "camera:0", "--ack-from", "", "--wait-for", ""])
-    session, keys = Session(), P.Keys("live")
+    session, keys = FakeSession(), P.Keys("live")
     svc = C.Service("play", args, session=session, keys=keys, install_signals=False)
     assert play.Player(svc, live, args).run() == 0
     frames = [P.decode(d, P.Frame) for k, d in session.puts if k == keys.frames]
@@ -419,22 +411,9 @@ def test_play_streams_a_live_camera_to_its_end(tmp_path):
 def _up_play_argv(monkeypatch, argv):
     """The command line `fmapping up ARGV` gives io play (after `services.io play`), no process started;
     None when up refused the input."""
-    from fmapping import launcher
     from fmapping.cli import main
 
-    started = {}
-
-    class FakeProc:
-        def __init__(self, name, argv, out, env):
-            started[name] = argv
-
-        def close(self):
-            pass
-
-    monkeypatch.setattr(launcher, "Proc", FakeProc)
-    monkeypatch.setattr(launcher, "_wait_ready", lambda procs, timeout: None)
-    monkeypatch.setattr(launcher, "_monitor", lambda procs, *a, **k: 0)
-    monkeypatch.setattr(launcher, "_stop_all", lambda *a, **k: None)
+    started = fake_up(monkeypatch)
     rc = main(["up", "--poses", "gt", "--view", "save", "--insecure"] + argv)
     if rc != 0:
         assert "play" not in started  # bad input: refused before any process

@@ -45,7 +45,8 @@ class SlabField(Field):
         return idx
 
     def density_raw(self, xyz):
-        return torch.where(self._which(xyz) >= 0, torch.full(xyz.shape[:1], 400.0), torch.full(xyz.shape[:1], EMPTY_RAW))
+        return torch.where(self._which(xyz) >= 0, torch.full(xyz.shape[:1], 400.0),
+                           torch.full(xyz.shape[:1], EMPTY_RAW))
 
     def color(self, xyz, viewdirs=None):
         cols = [s[4] for s in self.slabs] + ([self.floater[2]] if self.floater else []) + [(0.0, 0.0, 0.0)]

@@ -35,7 +35,8 @@ def test_se3_exp_log_roundtrip(angle):
     xi = torch.cat([torch.randn(8, 3, dtype=torch.float64), _axes(8) * angle], -1)
     t = g.se3_exp(xi)
     torch.testing.assert_close(g.se3_log(t), xi, atol=1e-8, rtol=0)
-    torch.testing.assert_close(g.se3_inverse(t) @ t, torch.eye(4, dtype=torch.float64).expand(8, 4, 4), atol=1e-12, rtol=0)
+    torch.testing.assert_close(g.se3_inverse(t) @ t, torch.eye(4, dtype=torch.float64).expand(8, 4, 4), atol=1e-12,
+                               rtol=0)
 
 
 def test_se3_exp_matches_matrix_exponential():

@@ -11,55 +11,12 @@ import argparse
 import numpy as np
 import pytest
 
+from fakes import FakeSession
 from fmapping import protocol as P
 from service_helpers import feed, gt_messages, small_cfg
 from services import common as C
 
 KEYS = P.Keys("hostile")
-
-
-class FakeSession:
-    """A zenoh session stand-in: remembers each subscription's callback (``deliver`` calls them)."""
-
-    class _Decl:
-        def __init__(self, sink=None):
-            self.sink = sink
-
-        def undeclare(self):
-            pass
-
-        def put(self, data):
-            if self.sink is not None:
-                self.sink.append(data)
-
-    class _Sample:
-        def __init__(self, key: str, data: bytes):
-            self.key_expr, self._data = key, data
-
-        @property
-        def payload(self):
-            return self
-
-        def to_bytes(self) -> bytes:
-            return self._data
-
-    def __init__(self):
-        self.subs: dict[str, list] = {}
-        self.published: dict[str, list] = {}
-
-    def declare_subscriber(self, key, cb):
-        self.subs.setdefault(key, []).append(cb)
-        return self._Decl()
-
-    def declare_publisher(self, key, **kw):
-        return self._Decl(self.published.setdefault(key, []))
-
-    def declare_queryable(self, key, cb):
-        return self._Decl()
-
-    def deliver(self, key: str, data: bytes, sub_key: str = None) -> None:
-        for cb in self.subs[sub_key or key]:
-            cb(self._Sample(key, data))
 
 
 def service(name: str, capacities: dict, max_bytes: dict = None, thin=()) -> tuple[C.Service, FakeSession]:

@@ -151,7 +151,7 @@ def test_cross_check_confirms_a_true_loop_and_measures_a_wrong_rotation(room320)
     whose rotation is 4 deg off is found about 4 deg away from the other way's measurement. Measured:
     0.06 deg for the true match; 0.99 / 1.91 / 3.99 deg for matches 1 / 2 / 4 deg off."""
     from fmapping.datasets import open_dataset
-    from fmapping.tracking.features import KltConfig, to_u8
+    from fmapping.tracking.features import KltConfig
     from fmapping.tracking.loop import LoopConfig, LoopMatch, cross_check, locate_in_keyframe
 
     ds = open_dataset(room320)
@@ -196,6 +196,7 @@ def _run_mono(ds, loop_enabled: bool, **loop):
     return fe, handed_on
 
 
+@pytest.mark.slow
 def test_mono_closes_the_loop_back_at_the_first_keyframe(loop160):
     """The camera comes back to its start: the loop to the first keyframe closes and the drift
     at the end of the sequence shrinks. Measured (GT-anchored, no alignment, last 10 frames):
@@ -225,6 +226,7 @@ def test_mono_closes_the_loop_back_at_the_first_keyframe(loop160):
     assert errs[True] < 0.03 and errs[True] < 0.4 * errs[False], errs
 
 
+@pytest.mark.slow
 def test_mono_loop_longer_than_the_ba_cap_gets_the_pose_graph_alone(loop160):
     """``loop_ba_max_keyframes`` below the loop's length: the same loop closes without the BA
     (no loop observations added). Measured: end error 1.14 cm (0.94 cm with the BA)."""

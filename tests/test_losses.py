@@ -6,8 +6,8 @@ import torch
 from fmapping.camera import PinholeCamera
 from fmapping.geometry import make_pose
 from fmapping.losses import (
-    depth_l1_loss, distortion_loss, expected_depth_l1, patch_offsets, photometric_loss, project_patches, sample_consistency_cost,
-    sample_frames, sample_views, warping_loss,
+    depth_l1_loss, distortion_loss, expected_depth_l1, patch_offsets, photometric_loss, project_patches,
+    sample_consistency_cost, sample_frames, sample_views, warping_loss,
 )
 
 CAM = PinholeCamera(80.0, 80.0, 39.5, 29.5, 80, 60)

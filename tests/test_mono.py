@@ -56,6 +56,7 @@ def test_mono_ba_with_fixed_older_observers_keeps_them_fixed_and_tracks(room320)
     assert ate(np.stack([p[k] for k in ks]), np.stack([g[k] for k in ks]), "sim3")["rmse_m"] < 0.01
 
 
+@pytest.mark.slow
 def test_mono_adds_dense_depth_to_keyframes_only_where_it_agrees_with_the_landmarks(room320):
     """Depth from elsewhere (the map, in fmapping slam) joins a new keyframe's reference only when,
     at the landmarks' pixels, it agrees with their depth: the true depth does (median gap 1.6-1.9 %
@@ -213,6 +214,7 @@ def test_mono_rescale_scales_the_whole_front_end_and_tracking_goes_on_unchanged(
         assert dt < 1e-5 and dr < 1e-3, (i, dt, dr)
 
 
+@pytest.mark.slow
 def test_mono_late_anchor_takes_the_scale_again_at_the_end_of_the_init_window(room320):
     """A bootstrap anchored with half the true baseline makes the whole run half size; with the
     late anchor (15 frames) the baseline to frame 14 is taken again and the trajectory comes out

@@ -103,7 +103,8 @@ def test_acl_policy_is_deny_by_default_and_pinned_to_the_namespace():
     keys = [k for r in acl["rules"] for k in r["key_exprs"]]
     assert all(k.startswith(f"fmapping/{NS}/") for k in keys)
     rules = {r["id"]: r for r in acl["rules"]}
-    puts = {p["subjects"][0]: [k for rid in p["rules"] if "put" in rules[rid]["messages"] for k in rules[rid]["key_exprs"]]
+    puts = {p["subjects"][0]: [k for rid in p["rules"] if "put" in rules[rid]["messages"]
+                               for k in rules[rid]["key_exprs"]]
             for p in acl["policies"]}
     ctl = f"fmapping/{NS}/control"
     assert sorted(role for role, ks in puts.items() if ctl in ks) == ["launcher", "play"]
@@ -111,6 +112,7 @@ def test_acl_policy_is_deny_by_default_and_pinned_to_the_namespace():
     assert [role for role, ks in puts.items() if f"fmapping/{NS}/frames" in ks] == ["play"]
 
 
+@pytest.mark.slow
 def test_a_session_without_the_run_credentials_cannot_join(run):
     creds, open_role = run
     mapper = open_role("mapper")

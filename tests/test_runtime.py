@@ -77,7 +77,8 @@ def test_service_torch_threads_auto_and_explicit():
     assert available_cpus() == len(os.sched_getaffinity(0))
     before = torch.get_num_threads()
     try:
-        assert set_torch_threads(0, auto=available_cpus() // 2) == max(1, available_cpus() // 2) == torch.get_num_threads()
+        assert set_torch_threads(0, auto=available_cpus() // 2) == max(1, available_cpus() // 2) \
+            == torch.get_num_threads()
         assert set_torch_threads(0, auto=0) == 1 == torch.get_num_threads()
         assert set_torch_threads(3, auto=1) == 3 == torch.get_num_threads()
     finally:

@@ -145,7 +145,8 @@ def test_zenoh_config_and_yaml(tmp_path):
     import argparse
 
     y = tmp_path / "z.yaml"
-    y.write_text("mode: client\nconnect: [tcp/10.0.0.1:7447]\nnamespace: lab\noptions:\n  scouting/gossip/enabled: false\n")
+    y.write_text("mode: client\nconnect: [tcp/10.0.0.1:7447]\nnamespace: lab\n"
+                 "options:\n  scouting/gossip/enabled: false\n")
     args = C.add_common_args(argparse.ArgumentParser()).parse_args(["--zenoh-config", str(y), "--ns", "cli"])
     net = C.resolve_network(args)
     assert net["mode"] == "client" and net["connect"] == ["tcp/10.0.0.1:7447"] and net["ns"] == "cli"
@@ -412,7 +413,8 @@ def test_tracker_core_answers_lost_when_the_map_is_empty(dataset):
     from fmapping.field import FieldConfig, build_field
     from services.tracker import TrackerCore, TrackerServiceOptions
 
-    core = TrackerCore(opts=TrackerServiceOptions(frontend="map"))  # reference depth rendered from the map, which is empty (clear field)
+    # reference depth rendered from the map, which is empty (clear field)
+    core = TrackerCore(opts=TrackerServiceOptions(frontend="map"))
     fcfg = FieldConfig(resolution=8, density_components=2, appearance_components=2, app_features=4, hidden=4)
     field = build_field(fcfg, np.array([[-3.0, -3, -1], [3, 3, 4]]))
     snap = P.FieldSnapshot(version=1, kind="cp", config={"field": dataclasses.asdict(fcfg), "n_coarse": 8, "n_fine": 0},
@@ -858,6 +860,7 @@ def test_fmapping_up_end_to_end(scene, tmp_path):
     assert len(pts) > 100 and ((pts > box[0] - 1e-3) & (pts < box[1] + 1e-3)).all()
 
 
+@pytest.mark.slow
 def test_fmapping_up_rgb_only_with_the_mono_tracker(room320, tmp_path):
     """The RGB-only multi-process loop: the tracker process poses every frame from the first
     (anchored by the GT poses play publishes), the mapper maps every frame with those poses."""
@@ -892,6 +895,7 @@ def test_fmapping_up_rgb_only_with_the_mono_tracker(room320, tmp_path):
     assert status["tracker"]["counters"].get("frames_lost", 0) == 0, status["tracker"]
 
 
+@pytest.mark.slow
 def test_fmapping_demo_runs_the_system_and_reports_its_metrics(tmp_path):
     """``fmapping demo`` (what ``make demo`` runs): the synthetic room, the multi-process system with
     tracker poses, and the trajectory / map scores against the scene's ground truth."""
@@ -952,7 +956,8 @@ def test_tracker_core_keeps_tracking_when_snapshots_arrive_late(dataset):
     mapper = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", checkpoint_every=0))
     n, lag = len(dataset), 4
     mapped = [[(ch, P.encode(m)) for ch, m in feed(mapper, dataset, [i]) if ch in ("field", "poses")] for i in range(n)]
-    core = TrackerCore(opts=TrackerServiceOptions(frontend="map", use_depth=True))  # the 64x48 test map is too coarse to render depth
+    # the 64x48 test map is too coarse to render depth
+    core = TrackerCore(opts=TrackerServiceOptions(frontend="map", use_depth=True))
     got, pred_err = {}, []
     for i in range(n + lag):
         outs = core.handle("frames", gt_messages(dataset, i)[1]) if i < n else []

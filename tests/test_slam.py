@@ -175,7 +175,7 @@ def test_slam_bad_inputs_are_named(scene, tmp_path):
 
 
 
-# ----------------------------------------------------------------------------- output writing shared with `fmapping map`
+# ---------------------------------------------------------------------------- output writing shared with `fmapping map`
 def _fake_exporters(monkeypatch, cloud, mesh):
     """Replace the (slow, separately tested) exporters by functions returning ``cloud`` / ``mesh``
     and recording their arguments; the mesh one also calls the culling render it is given."""
@@ -285,7 +285,8 @@ def test_map_job_stopped_on_request_exports_the_map_so_far(scene, tmp_path, monk
     real_open = pipeline.open_job_dataset
     for last, want_frames in ((10, 11), (3, 4)):
         watched = []
-        monkeypatch.setattr(pipeline, "open_job_dataset", lambda a: watched.append(_Watched(real_open(a))) or watched[-1])
+        monkeypatch.setattr(pipeline, "open_job_dataset",
+                            lambda a: watched.append(_Watched(real_open(a))) or watched[-1])
         out = tmp_path / f"map{last}"
         seen.clear()
         args = Job(data=str(root), out=str(out), config=str(cfg), poses="gt", device="cpu", quiet=True)

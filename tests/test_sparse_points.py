@@ -179,6 +179,7 @@ def test_seen_depth_box_holds_what_the_camera_saw_at_its_points_depth():
     assert seen_depth_box(np.stack([a]), [np.zeros(0)], cam) is None
 
 
+@pytest.mark.slow
 def test_fill_depths_is_exact_on_a_plane_and_skips_depth_edges():
     """Points on a tilted plane: the filled grid depths are the plane's own depths (inverse depth is
     affine in the pixel on a plane); a second plane 2x farther on the right half: triangles that span

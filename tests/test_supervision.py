@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -19,25 +18,13 @@ import pytest
 pytest.importorskip("zenoh")
 
 from fmapping import launcher as L  # noqa: E402
+from fakes import FakeProc, FakeSession  # noqa: E402
 from fault_helpers import FAULT_MAPPER  # noqa: E402
 from service_helpers import ROOT, SMALL_MAPPER, subprocess_env  # noqa: E402
 
 
-class FakeProc:
-    def __init__(self, name: str, rc=None):
-        self.name, self._rc, self.restarts = name, rc, 0
-
-    @property
-    def rc(self):
-        return self._rc
-
-    def restart(self):
-        self.restarts += 1
-        self._rc = None
-
-
 def test_supervise_restarts_crashes_with_backoff_and_a_bound(capsys):
-    procs = {"play": FakeProc("play"), "mapper": FakeProc("mapper", -9), "record": FakeProc("record", 2)}
+    procs = {"play": FakeProc("play"), "mapper": FakeProc("mapper", rc=-9), "record": FakeProc("record", rc=2)}
     pending: dict = {}
     L._supervise(procs, pending, now=100.0)
     assert pending == {"mapper": 100.0 + L.RESTART_BACKOFF}  # bad input (2) is not retried
@@ -53,7 +40,7 @@ def test_supervise_restarts_crashes_with_backoff_and_a_bound(capsys):
     procs["mapper"]._rc = 1
     L._supervise(procs, pending, now=1e6)
     assert not pending and procs["mapper"].restarts == L.MAX_RESTARTS  # the bound: it stays down
-    procs = {"play": FakeProc("play", 0), "tracker": FakeProc("tracker", -9)}
+    procs = {"play": FakeProc("play", rc=0), "tracker": FakeProc("tracker", rc=-9)}
     L._supervise(procs, pending, now=0.0)
     assert not pending  # play has finished: nobody would send the end-of-sequence stop again
     assert "restarting it in 1 s (1/3)" in capsys.readouterr().err
@@ -219,7 +206,8 @@ def test_fmapping_up_resume_continues_a_killed_run(fault_scene, tmp_path):
     metrics = demo_metrics(out, scene)
     up = json.loads((out / "up.json").read_text())
     counters = {n: v["counters"] for n, v in up["status"].items()}
-    assert counters["mapper"]["resumes"] == 1 and counters["play"]["started_after"] == counters["mapper"]["resumed_at_seq"]
+    assert counters["mapper"]["resumes"] == 1 \
+        and counters["play"]["started_after"] == counters["mapper"]["resumed_at_seq"]
     assert "bootstrap_frame" not in counters["tracker"] and counters["tracker"]["resumed_at"] > killed_at
     run = type(clean)(rc=0, log="", out=out, metrics=metrics)
     lost = set(_mapped(clean)) - set(_mapped(run))
@@ -463,20 +451,10 @@ def test_play_sends_a_restarted_consumer_the_frames_it_missed_and_starts_after_a
     from services import common as C
     from services.io import play
 
-    class Session:  # records what would go on the bus
-        def __init__(self):
-            self.puts = []
-
-        def declare_publisher(self, key, **kw):
-            return type("Pub", (), {"put": lambda _, data: self.puts.append((key, data)), "undeclare": lambda _: None})()
-
-        def declare_subscriber(self, key, cb):
-            return type("Sub", (), {"undeclare": lambda _: None})()
-
     def player(*extra):
         args = play.add_args(argparse.ArgumentParser()).parse_args(
             ["--data", str(scene), "--ack-from", "", "--wait-for", "", "--no-end-stop", *extra])
-        session = Session()
+        session = FakeSession()
         svc = C.Service("play", args, session=session, keys=P.Keys("t"), install_signals=False)
         return play.Player(svc, open_dataset(scene), args), session
 

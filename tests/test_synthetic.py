@@ -259,7 +259,9 @@ def test_gt_clouds(scene_dir):
     vis = read_ply(out / "gt_visible_cloud.ply")
     assert 0 < len(vis.points) < len(full.points) == info["gt_cloud_points"]
     # visible points are rows of the full cloud (same float32 coordinates and colours)
-    key = lambda p, c: {tuple(r) for r in np.concatenate([p.astype(np.float32).view(np.uint32), c], 1).tolist()}
+    def key(p, c):
+        return {tuple(r) for r in np.concatenate([p.astype(np.float32).view(np.uint32), c], 1).tolist()}
+
     assert key(vis.points, vis.colors) <= key(full.points, full.colors)
     sc = S.make_scene(SEED)
     # uniform by area: the ceiling and the x-min wall get point counts proportional to their areas
