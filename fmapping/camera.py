@@ -37,7 +37,8 @@ class PinholeCamera:
             raise ValueError(f"camera focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"camera size must be positive, got {self.width}x{self.height}")
-        if not (-0.5 * self.width <= self.cx <= 1.5 * self.width and -0.5 * self.height <= self.cy <= 1.5 * self.height):
+        if not (-0.5 * self.width <= self.cx <= 1.5 * self.width
+                and -0.5 * self.height <= self.cy <= 1.5 * self.height):
             raise ValueError(
                 f"principal point ({self.cx}, {self.cy}) is far outside the {self.width}x{self.height} image: "
                 "are the intrinsics in the order fx,fy,cx,cy and for this resolution?"

@@ -450,7 +450,8 @@ def export_point_cloud(
     pts, views, pix = np.concatenate(all_p), np.concatenate(all_v), np.concatenate(all_x)
     if voxel > 0 and len(pts):
         inv, counts, first = _voxel_groups(pts, voxel)
-        p = np.stack([np.bincount(inv, weights=pts[:, a], minlength=len(counts)) for a in range(3)], -1) / counts[:, None]
+        p = (np.stack([np.bincount(inv, weights=pts[:, a], minlength=len(counts)) for a in range(3)], -1)
+             / counts[:, None])
     else:
         p, first = pts, np.arange(len(pts))
     c = _deferred_colors(field, plist, dirs, renders, views[first], pix[first])
@@ -473,7 +474,8 @@ def _deferred_colors(field, plist: list, dirs: np.ndarray, renders: list, views:
     out = np.zeros((len(views), 3))
     for s in range(0, len(views), chunk):
         sl = slice(s, s + chunk)
-        x = torch.as_tensor(org[sl, None, :] + ct[sl, :, None] * dw[sl, None, :], dtype=field.dtype, device=field.device)
+        x = torch.as_tensor(org[sl, None, :] + ct[sl, :, None] * dw[sl, None, :], dtype=field.dtype,
+                            device=field.device)
         vd = None
         if field.cfg.view_dependent:
             vd = torch.as_tensor(np.repeat(dw[sl] / np.linalg.norm(dw[sl], axis=1, keepdims=True), k, 0),

@@ -20,8 +20,9 @@ def write_map_outputs(mapper, poses: dict, camera, out: Path, *, near: float, fa
                       scale: float = 1.0) -> dict:
     """Export the map seen from ``poses`` (dict frame id -> c2w) into ``out/map.ply`` (coloured
     point cloud, :func:`fmapping.export.export_point_cloud`, rendered with ``cloud_samples``
-    = (coarse, fine) samples per ray, the exporter's defaults when None) and ``out/mesh.ply`` (:func:`fmapping.export.export_mesh`
-    on a ``mesh_resolution``^3 grid, culled with depth rendered with ``mesh_samples``).
+    = (coarse, fine) samples per ray, the exporter's defaults when None) and ``out/mesh.ply``
+    (:func:`fmapping.export.export_mesh` on a ``mesh_resolution``^3 grid, culled with depth rendered
+    with ``mesh_samples``).
     With ``center`` both are written through the similarity ``x -> center + scale (x - center)``
     (the SLAM output frame). Returns ``{"points", "mesh_vertices", "mesh_faces", "seconds"}``."""
     from fmapping.export import export_mesh, export_point_cloud

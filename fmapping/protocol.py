@@ -323,9 +323,11 @@ def _unpack_array(d: Any, where: str, max_bytes: int) -> np.ndarray:
     count = math.prod(dims)
     nbytes = count * dt.itemsize
     if nbytes > max_bytes:
-        raise ProtocolError(f"{where}: array of shape {tuple(dims)} {name} ({nbytes} bytes) exceeds the {max_bytes}-byte limit")
+        raise ProtocolError(f"{where}: array of shape {tuple(dims)} {name} ({nbytes} bytes) "
+                            f"exceeds the {max_bytes}-byte limit")
     if math.prod(d for d in dims if d) * dt.itemsize > max_bytes:  # e.g. (0, 2**31, 2**31): empty but unrepresentable
-        raise ProtocolError(f"{where}: empty array of shape {tuple(dims)} has dimensions beyond the {max_bytes}-byte limit")
+        raise ProtocolError(f"{where}: empty array of shape {tuple(dims)} "
+                            f"has dimensions beyond the {max_bytes}-byte limit")
     data = d["data"]
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise ProtocolError(f"{where}.data: expected raw bytes, got {type(data).__name__}")

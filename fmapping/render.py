@@ -109,7 +109,8 @@ def _density_pass(field, origins: Tensor, dirs: Tensor, t: Tensor) -> tuple[Rend
         raise ValueError(f"t must have shape (N, S), got {tuple(t.shape)}")
     n, s = t.shape
     if origins.shape != (n, 3) or dirs.shape != (n, 3):
-        raise ValueError(f"origins {tuple(origins.shape)} and dirs {tuple(dirs.shape)} must be ({n}, 3) for t {tuple(t.shape)}")
+        raise ValueError(f"origins {tuple(origins.shape)} and dirs {tuple(dirs.shape)} "
+                         f"must be ({n}, 3) for t {tuple(t.shape)}")
     dtype = field.dtype
     origins, dirs, t = origins.to(dtype), dirs.to(dtype), t.to(dtype)
     dnorm = dirs.norm(dim=-1)

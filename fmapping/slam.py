@@ -547,7 +547,8 @@ class SlamRun:
             self.est[k] = p
         self.init_report["late_anchor"] = fe.late_anchor
         self.init_report["ba"] = {"runs": len(fe.ba_stats),
-                                  "ms_median": float(np.median([b["ms"] for b in fe.ba_stats])) if fe.ba_stats else None,
+                                  "ms_median": float(np.median([b["ms"] for b in fe.ba_stats]))
+                                  if fe.ba_stats else None,
                                   "rms_after_px_median": float(np.median([b["rms_after_px"] for b in fe.ba_stats]))
                                   if fe.ba_stats else None}
 

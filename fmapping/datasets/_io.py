@@ -183,11 +183,13 @@ def text_lines(path: Path) -> list[tuple[int, str]]:
     return [(i, s.strip()) for i, s in enumerate(text.splitlines(), 1) if s.strip() and not _COMMENT.match(s)]
 
 
-def parse_floats(s: str, path: Path, lineno: int, expected: Optional[Sequence[int]] = None, what: str = "") -> list[float]:
+def parse_floats(s: str, path: Path, lineno: int, expected: Optional[Sequence[int]] = None,
+                 what: str = "") -> list[float]:
     parts = s.replace(",", " ").split()
     if expected is not None and len(parts) not in expected:
         want = " or ".join(str(n) for n in expected)
-        raise DatasetError(f"{path}:{lineno}: expected {want} numbers{' (' + what + ')' if what else ''}, got {len(parts)}: {s!r}")
+        raise DatasetError(f"{path}:{lineno}: expected {want} numbers{' (' + what + ')' if what else ''}, "
+                           f"got {len(parts)}: {s!r}")
     try:
         return [float(p) for p in parts]
     except ValueError:

@@ -104,7 +104,8 @@ def read_camera_file(path: Path, size: tuple[int, int]) -> PinholeCamera:
     return load_camera_file(path, size)[0]
 
 
-def camera_next_to(folder: Path, override, size: tuple[int, int], what: str) -> tuple[PinholeCamera, str, Optional[float]]:
+def camera_next_to(folder: Path, override, size: tuple[int, int],
+                   what: str) -> tuple[PinholeCamera, str, Optional[float]]:
     """Intrinsics of a source without its own: ``override`` (``--camera``), else a calibration file
     in ``folder``, else a :class:`DatasetError` that says how to give them (never a guess).
 

@@ -83,7 +83,8 @@ def camera_from_cam_file(
     fx, fy, cx, cy = num("fx"), num("fy"), num("cx"), num("cy")
     w, h = num("W", "w", "width", required=False), num("H", "h", "height", required=False)
     if w is not None and h is not None and (int(w), int(h)) != tuple(size):
-        raise DatasetError(f"{path}: intrinsics are for {int(w)}x{int(h)} images but the images are {size[0]}x{size[1]}")
+        raise DatasetError(f"{path}: intrinsics are for {int(w)}x{int(h)} images "
+                           f"but the images are {size[0]}x{size[1]}")
     dist = [num(k, required=False) or 0.0 for k in ("k1", "k2", "p1", "p2", "k3")]
     cam = make_camera([fx, fy, cx, cy] + (dist if any(dist) else []), size, str(path))
     return cam, scale

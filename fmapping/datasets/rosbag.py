@@ -139,7 +139,8 @@ def _pick_topic(reader, topic: Optional[str], where: str):
             raise DatasetError(f"{where}: {topic} carries {topics[topic]}, not an Image / CompressedImage")
         return topic, sorted(images)
     if not images:
-        raise DatasetError(f"{where}: no sensor_msgs/msg/Image or CompressedImage topic (topics: {sorted(topics) or 'none'})")
+        raise DatasetError(f"{where}: no sensor_msgs/msg/Image or CompressedImage topic "
+                           f"(topics: {sorted(topics) or 'none'})")
     counts = {t: sum(c.msgcount for c in reader.connections if c.topic == t) for t in images}
     colour = [t for t in images if "depth" not in t.lower()] or list(images)
     best = max(sorted(colour), key=lambda t: counts[t])

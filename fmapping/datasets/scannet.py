@@ -62,7 +62,8 @@ class ScanNetSequence(ImageSequence):
         if dc is None:
             return depth
         if depth.shape != (dc.height, dc.width):
-            raise DatasetError(f"depth image is {depth.shape[1]}x{depth.shape[0]}, the first was {dc.width}x{dc.height}: {path}")
+            raise DatasetError(f"depth image is {depth.shape[1]}x{depth.shape[0]}, "
+                               f"the first was {dc.width}x{dc.height}: {path}")
         if self._maps is None:
             # colour pixel -> its ray -> the depth pixel on that ray (the cameras are registered)
             cam = self.raw_camera

@@ -96,7 +96,8 @@ def read_calib(path: Path) -> tuple[list[float], int, Optional[float]]:
             if not np.isfinite(factor) or factor <= 0:
                 raise DatasetError(f"{path}:{lineno}: depth_factor must be a positive number, got {parts[1]!r}")
         else:
-            raise DatasetError(f"{path}:{lineno}: unexpected line {s!r} (only 'depth_factor F' may follow the intrinsics)")
+            raise DatasetError(f"{path}:{lineno}: unexpected line {s!r} "
+                               "(only 'depth_factor F' may follow the intrinsics)")
     return vals, cam_line, factor
 
 

@@ -132,7 +132,8 @@ def load_video(path, camera: CameraArg = None, max_frames: Optional[int] = None,
     valid_container = np.isfinite(container_fps) and 0 < container_fps < 10000
     rate = fps or (container_fps if valid_container else None) or file_fps
     if rate is None:
-        raise DatasetError(f"{path}: the container gives no frame rate; pass fps= (open_dataset) or an fps key in camera.yaml")
+        raise DatasetError(f"{path}: the container gives no frame rate; "
+                           "pass fps= (open_dataset) or an fps key in camera.yaml")
     meta = {
         "camera_source": source,
         "video": str(path),

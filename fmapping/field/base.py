@@ -48,7 +48,8 @@ class FieldConfig:
     appearance_components: int = 24  # CP appearance rank
     app_features: int = 27         # width of the linear appearance basis fed to the MLP
     hidden: int = 48               # colour MLP hidden width (2 layers: in -> hidden -> 3)
-    alpha_mode: str = "density"    # "density": alpha = 1-exp(-softplus(raw+shift)*delta); "occupancy": alpha = sigmoid(raw+shift) (UNISURF)
+    alpha_mode: str = "density"    # "density": alpha = 1-exp(-softplus(raw+shift)*delta);
+    #                                "occupancy": alpha = sigmoid(raw+shift) (UNISURF)
     density_shift: float = -10.0   # start clear: softplus(0-10) ~ 4.5e-5
     init_scale: float = 0.1        # std of factor init
     view_dependent: bool = False   # feed view directions (with PE) to the colour MLP

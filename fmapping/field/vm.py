@@ -73,16 +73,16 @@ class VMField(Field):
         self._check_points(xyz)
         u, uc = self.normalize_clamped(xyz)
         p = sample_planes(self.density_planes, uc)
-        l = sample_lines(self.density_lines, self._lines_u(uc))
-        raw = (p * l).sum((0, 1))
+        lines = sample_lines(self.density_lines, self._lines_u(uc))
+        raw = (p * lines).sum((0, 1))
         return self._mask_outside(raw, u)
 
     def app_features(self, xyz: Tensor) -> Tensor:
         """(N, 3) -> (N, 3 * vm_appearance_components), pair-major."""
         uc = self.normalize_clamped(xyz)[1]
         p = sample_planes(self.app_planes, uc)
-        l = sample_lines(self.app_lines, self._lines_u(uc))
-        return (p * l).flatten(0, 1).t()
+        lines = sample_lines(self.app_lines, self._lines_u(uc))
+        return (p * lines).flatten(0, 1).t()
 
     def color(self, xyz: Tensor, viewdirs: Optional[Tensor] = None) -> Tensor:
         self._check_points(xyz)

@@ -57,7 +57,8 @@ class MapperConfig:
     warp_dilations: tuple = (1.0,)
     warp_keep: float = 1.0
     warp_views: int = 8  # target views per iteration (random subset of the window; 0 = all)
-    warp_depth: str = "expected"  # depth for warping: "expected" (sum w t / acc) | "far" (unreached mass at the ray's far bound)
+    # depth for warping: "expected" (sum w t / acc) | "far" (unreached mass at the ray's far bound)
+    warp_depth: str = "expected"
     pc_weight: float = 4.0  # per-sample photo-consistency loss sum_i w_i (cost_i - mean cost) (plane-sweep cost volume)
     pc_rays: int = 512  # rays (of rays_per_iter) that get the per-sample cost
     pc_views: int = 4  # other window views the per-sample cost is computed in
@@ -102,8 +103,8 @@ class MapperConfig:
             raise ValueError(f"MapperConfig.bounds must be 'points' or 'frusta', got {self.bounds!r}")
         if min(self.sparse_depth_weight, self.sparse_rays, self.sparse_fill_weight, self.lr_exposure, self.exposure_reg,
                self.distortion_weight) < 0:
-            raise ValueError("MapperConfig: sparse_depth_weight, sparse_rays, sparse_fill_weight, lr_exposure, exposure_reg "
-                             "and distortion_weight must be >= 0")
+            raise ValueError("MapperConfig: sparse_depth_weight, sparse_rays, sparse_fill_weight, lr_exposure, "
+                             "exposure_reg and distortion_weight must be >= 0")
         self.sparse.validate()
         if self.warp_depth not in ("far", "expected"):
             raise ValueError(f"MapperConfig.warp_depth must be 'far' or 'expected', got {self.warp_depth!r}")

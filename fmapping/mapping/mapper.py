@@ -297,7 +297,8 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
         self.aabb = box.to(self.device)
         self.field = build_field(cfg.field, self.aabb.cpu()).to(self.device)  # seeded by cfg.field.seed
         if cfg.optimize_init_poses:
-            self._pose_corr = torch.nn.Parameter(torch.zeros(cfg.init_frames, 6, dtype=torch.float32, device=self.device))
+            self._pose_corr = torch.nn.Parameter(
+                torch.zeros(cfg.init_frames, 6, dtype=torch.float32, device=self.device))
         self._make_optimizer()
 
     def _grow_box(self) -> None:

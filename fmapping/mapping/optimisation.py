@@ -111,7 +111,8 @@ class OptimisationStep:
         view, uv, z, w = (np.concatenate(x) for x in zip(*rows))
         dev = self.device
         return (torch.as_tensor(view, device=dev), torch.as_tensor(uv, dtype=torch.float32, device=dev),
-                torch.as_tensor(z, dtype=torch.float32, device=dev), torch.as_tensor(w, dtype=torch.float32, device=dev))
+                torch.as_tensor(z, dtype=torch.float32, device=dev),
+                torch.as_tensor(w, dtype=torch.float32, device=dev))
 
     def _step(self, ids: list[int], imgs: Tensor, mode: str, n_coarse: int, n_fine: int, sw_window: int = 0,
               scene_imgs: Optional[Tensor] = None, sparse: Optional[tuple] = None) -> dict:

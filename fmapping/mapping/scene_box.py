@@ -35,7 +35,8 @@ def aabb_from_depth(c2w: np.ndarray, depths: list, camera: PinholeCamera, margin
         ok = np.isfinite(z) & (z > 0)
         if not ok.any():
             continue
-        p = np.stack([(uv[..., 0][ok] - camera.cx) / camera.fx * z[ok], (uv[..., 1][ok] - camera.cy) / camera.fy * z[ok], z[ok]], -1)
+        p = np.stack([(uv[..., 0][ok] - camera.cx) / camera.fx * z[ok],
+                      (uv[..., 1][ok] - camera.cy) / camera.fy * z[ok], z[ok]], -1)
         pts.append(p @ pose[:3, :3].T + pose[:3, 3])
         pts.append(pose[None, :3, 3])
     if not pts:

@@ -25,7 +25,8 @@ class MapperStateIO:
             "camera": self.camera.to_dict(),
             "aabb": None if self.aabb is None else self.aabb.detach().cpu().clone(),
             "aabb_given": None if self._aabb_given is None else self._aabb_given.clone(),
-            "field": None if self.field is None else {k: v.detach().cpu().clone() for k, v in self.field.state_dict().items()},
+            "field": None if self.field is None else {k: v.detach().cpu().clone()
+                                                      for k, v in self.field.state_dict().items()},
             "optimizer": None if self._opt is None else _cpu_tree(self._opt.state_dict()),
             "pose_corr": None if self._pose_corr is None else self._pose_corr.detach().cpu().clone(),
             "images": {int(i): im.clone() for i, im in self._images.items()},

@@ -65,8 +65,9 @@ def sample_pdf(t: Tensor, weights: Tensor, n: int, deterministic: bool = False,
     Sample ``i`` owns the bin between the midpoints to its neighbours (the first and
     last bins end at ``t_0`` and ``t_{S-1}``, so new samples stay in ``[t_0, t_{S-1}]``),
     with probability proportional to ``weights_i + 1e-5 * max(sum w, 1e-3) * width_i / range``
-    (a small floor that is uniform in ``t``: empty rays sample uniformly over the range). ``u`` is stratified over [0, 1) (one per
-    ``1/n`` slice, at the slice centre when ``deterministic``), so the output is sorted.
+    (a small floor that is uniform in ``t``: empty rays sample uniformly over the range).
+    ``u`` is stratified over [0, 1) (one per ``1/n`` slice, at the slice centre when ``deterministic``),
+    so the output is sorted.
     Inputs are detached (no gradient).
     """
     if t.shape != weights.shape or t.dim() != 2:

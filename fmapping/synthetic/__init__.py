@@ -30,7 +30,8 @@ from fmapping.synthetic.camera_path import (CLEARANCE_M, MAX_STEP_DEG, MAX_STEP_
                                             make_trajectory, trajectory_steps)
 from fmapping.synthetic.ground_truth import VISIBLE_TOL_M, gt_cloud, gt_mesh, visible_mask
 from fmapping.synthetic.render import cast_rays, render_view
-from fmapping.synthetic.scene import VARIETIES, Box, LoopPath, Rect, Scene, Style, camera_for_size, draw_style, make_scene
+from fmapping.synthetic.scene import (VARIETIES, Box, LoopPath, Rect, Scene, Style, camera_for_size, draw_style,
+                                      make_scene)
 from fmapping.synthetic.texture import PATTERNS, Texture, surface_colour
 from fmapping.synthetic.writers import DEPTH_FACTOR, FPS, generate_scene
 

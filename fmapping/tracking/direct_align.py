@@ -148,7 +148,8 @@ def select_pixels(gray: np.ndarray, num_points: int, min_grad: float = 0.02, val
     mag = np.where(mask, mag, 0.0)
     cell = max(1, int(math.sqrt(h * w / (1.5 * max(num_points, 1)))))
     hc, wc = h // cell, w // cell
-    blocks = mag[: hc * cell, : wc * cell].reshape(hc, cell, wc, cell).transpose(0, 2, 1, 3).reshape(hc, wc, cell * cell)
+    blocks = (mag[: hc * cell, : wc * cell].reshape(hc, cell, wc, cell).transpose(0, 2, 1, 3)
+              .reshape(hc, wc, cell * cell))
     arg = blocks.argmax(-1)
     best = np.take_along_axis(blocks, arg[..., None], -1)[..., 0]
     cy, cx = np.meshgrid(np.arange(hc), np.arange(wc), indexing="ij")
@@ -238,7 +239,8 @@ def reference_from_points(rgb: np.ndarray, points_cam: np.ndarray, camera: Pinho
     zs = np.where(z > 1e-6, z, 1.0)
     u = camera.fx * pts[:, 0] / zs + camera.cx
     v = camera.fy * pts[:, 1] / zs + camera.cy
-    ok = (z > 1e-3) & (u >= margin) & (u <= camera.width - 1 - margin) & (v >= margin) & (v <= camera.height - 1 - margin)
+    ok = ((z > 1e-3) & (u >= margin) & (u <= camera.width - 1 - margin) & (v >= margin)
+          & (v <= camera.height - 1 - margin))
     border_ok = image_valid_mask(rgb)
     if border_ok is not None:
         iu = np.clip(np.round(u), 0, camera.width - 1).astype(int)
@@ -401,7 +403,8 @@ def align(ref: Reference, cur: Pyramid, t_init: np.ndarray, cfg: AlignConfig,
                     lam *= 10
                     continue
                 t_new = se3_exp_np(step[:6]) @ t
-                ab_new = np.clip(ab + step[6:8], -np.asarray(cfg.affine_bound), np.asarray(cfg.affine_bound)) if cfg.affine else ab
+                ab_new = (np.clip(ab + step[6:8], -np.asarray(cfg.affine_bound), np.asarray(cfg.affine_bound))
+                          if cfg.affine else ab)
                 r_new, jac_new, valid_new = warp_residuals(img, cam, ref.points, iref, t_new, ab_new, mask=msk)
                 if len(r_new) >= cfg.min_valid and _total_cost(r_new, k, ab_new, cfg) <= cost * (1 + 1e-9):
                     t, ab, r, jac, valid = t_new, ab_new, r_new, jac_new, valid_new
@@ -420,7 +423,8 @@ def align(ref: Reference, cur: Pyramid, t_init: np.ndarray, cfg: AlignConfig,
         if lvl == 0:
             w = huber_weights(r, k)
             h6 = (jac[:, :6] * w[:, None]).T @ jac[:, :6]
-    r, _, valid = warp_residuals(cur.levels[0], cur.cameras[0], ref.points, ref.intensities[0], t, ab, with_jacobian=False,
+    r, _, valid = warp_residuals(cur.levels[0], cur.cameras[0], ref.points, ref.intensities[0], t, ab,
+                                 with_jacobian=False,
                                  mask=cur.masks[0] if cur.masks is not None else None)
     n = len(ref.points)
     ok = len(r) >= cfg.min_valid and bool(np.all(np.isfinite(t)))

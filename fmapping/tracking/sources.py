@@ -24,7 +24,8 @@ def poses_from_file(path, timestamps: np.ndarray, max_dt: float = 0.02) -> list:
     idx = associate(np.asarray(timestamps, np.float64), ts, max_dt)
     missing = np.flatnonzero(idx < 0)
     if len(missing):
-        raise ValueError(f"{path}: no pose within {max_dt} s of {len(missing)} frame(s), first at t={timestamps[missing[0]]:.6f}")
+        raise ValueError(f"{path}: no pose within {max_dt} s of {len(missing)} frame(s), "
+                         f"first at t={timestamps[missing[0]]:.6f}")
     return [c2w[i] for i in idx]
 
 

@@ -158,7 +158,7 @@ class Bootstrap:
         for f in (i0, index):
             m = obs[:, 0] == f
             obs[m, 2:4] = unroll(cam, obs[m, 2:4], steps[f], r)
-        self.store.obs = [(int(f), int(l), float(u), float(v)) for f, l, u, v in obs]
+        self.store.obs = [(int(f), int(lid), float(u), float(v)) for f, lid, u, v in obs]
 
     def _bootstrap_ba(self, poses: dict, k_index: int, baseline: Optional[float],
                       fix_last: bool = False) -> Optional[float]:
@@ -168,22 +168,22 @@ class Bootstrap:
         tr = self.store.tracks
         ids = [f for f, _ in self._buf]
         sel = sorted(set([ids[0], ids[-1]] + [ids[int(j)] for j in np.linspace(0, len(ids) - 1, min(6, len(ids)))]))
-        tid_to_lid = {int(t): int(l) for t, l in zip(tr.tid, tr.lid) if l >= 0}
+        tid_to_lid = {int(t): int(lid) for t, lid in zip(tr.tid, tr.lid) if lid >= 0}
         obs_kf, obs_pt, obs_uv = [], [], []
         lids = sorted(set(tid_to_lid.values()))
-        lpos = {l: i for i, l in enumerate(lids)}
+        lpos = {lid: i for i, lid in enumerate(lids)}
         for kpos, f in enumerate(sel):
             tids, uvs = self._hist[f]
             for t, uv in zip(tids, uvs):
-                l = tid_to_lid.get(int(t))
-                if l is not None:
+                lid = tid_to_lid.get(int(t))
+                if lid is not None:
                     obs_kf.append(kpos)
-                    obs_pt.append(lpos[l])
+                    obs_pt.append(lpos[lid])
                     obs_uv.append(uv)
         if len(lids) < 10:
             return None
         fixed = [0, len(sel) - 1] if fix_last else [0]  # sel ends with k_index (the newest frame)
-        res = bundle_adjust(self.camera, [poses[f] for f in sel], fixed, np.stack([self.store.lm[l] for l in lids]),
+        res = bundle_adjust(self.camera, [poses[f] for f in sel], fixed, np.stack([self.store.lm[lid] for lid in lids]),
                             np.array(obs_kf), np.array(obs_pt), np.array(obs_uv), c.ba_huber_px, 30)
         new = dict(zip(sel, res.poses))
         pts = res.points
@@ -203,8 +203,8 @@ class Bootstrap:
                 prev = max(x for x in sel if x <= fi)
                 moved[fi] = orthonormalize(new[prev] @ inv_pose(poses[prev]) @ poses[fi])
         poses.update(moved)
-        for l, p in zip(lids, pts):
-            self.store.lm[l] = p
+        for lid, p in zip(lids, pts):
+            self.store.lm[lid] = p
         self.store.kf_pose[k_index] = poses[k_index]
         bad = res.residual_px > c.ba_outlier_px
         return float(np.sqrt(np.mean(res.residual_px[~bad] ** 2))) if (~bad).any() else None
