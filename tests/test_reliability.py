@@ -558,7 +558,7 @@ def _report(name: str, cats: collections.Counter, seconds: float) -> None:
 @pytest.fixture(scope="module")
 def mapped(dataset):
     """A MapperCore with a map (init + one window over frames 0..5) and frame 6 waiting for its pose."""
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", points_interval=1e9, checkpoint_every=0))
     feed(core, dataset, range(6))
@@ -592,7 +592,7 @@ def test_fuzz_mapper_core_10k_malformed_messages(mapped, dataset):
 
 
 def test_fuzz_tracker_core_10k_malformed_messages(mapped, dataset):
-    from services.tracker import TrackerCore, TrackerServiceOptions
+    from services.tracker.core import TrackerCore, TrackerServiceOptions
 
     snap = P.decode(mapped.latest_field_bytes, P.FieldSnapshot)
     core = TrackerCore(opts=TrackerServiceOptions(frontend="map", use_depth=True))  # references from the sensor depth
@@ -1002,7 +1002,7 @@ class Producer(GtProducer):
 def test_checkpoint_write_is_atomic_when_the_process_dies_mid_write(dataset, tmp_path, monkeypatch):
     """A crash while the next checkpoint is being written (here: torch.save raising half-way)
     leaves the previous checkpoint intact and loadable; the temp file is never the checkpoint."""
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     opts = dict(pose_source="gt", out=str(tmp_path), points_interval=1e9, checkpoint_every=1)
     core = MapperCore(small_cfg(), MapperServiceOptions(**opts))
@@ -1037,7 +1037,7 @@ def test_mapper_kill9_resumes_from_the_last_checkpoint_losing_at_most_one_window
     """kill -9 of a mapper process busy in its third update; restarted with the same --out it
     resumes from the checkpoint of the second (the one in progress is the only loss), maps the
     rest, and its final map is bit-identical to an uninterrupted run (in-process reference)."""
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     over = {"iters_per_window": 40}  # ~0.4 s updates: the kill lands inside one
     cfg = mapper_yaml(tmp_path, **over)
@@ -1233,7 +1233,7 @@ def map_digest(scene_dir: str, frames: int = 10, threads: int = 1) -> str:
     """sha256 over the field tensors (name, dtype, shape, bytes) and every frame pose after mapping
     ``frames`` frames of ``scene_dir`` through a MapperCore (GT poses) and its closing stage."""
     from fmapping.datasets import open_dataset
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     torch.set_num_threads(threads)
     ds = open_dataset(scene_dir)
@@ -1306,8 +1306,8 @@ def test_a_first_frame_the_services_cannot_use_is_rejected_not_adopted(dataset):
     """The first frame fixes a service's camera. One the mapper / tracker cannot use (distortion
     coefficients, a principal point far outside the image) is counted and rejected, and the next
     good frame still starts the stream (before the fix it was adopted and every later frame failed)."""
-    from services.mapper import MapperCore, MapperServiceOptions
-    from services.tracker import TrackerCore
+    from services.mapper.core import MapperCore, MapperServiceOptions
+    from services.tracker.core import TrackerCore
 
     good = P.frame_from_dataset(dataset[0], seq=0)
     distorted = dataclasses.replace(good, camera=dict(good.camera, dist=[0.1, 0.0, 0.0, 0.0]))
