@@ -148,7 +148,7 @@ def map_digest(scene_dir: str, frames: int = 10, threads: int = 1) -> str:
     """sha256 over the field tensors (name, dtype, shape, bytes) and every frame pose after mapping
     ``frames`` frames of ``scene_dir`` through a MapperCore (GT poses) and its closing stage."""
     from fmapping.datasets import open_dataset
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     torch.set_num_threads(threads)
     ds = open_dataset(scene_dir)

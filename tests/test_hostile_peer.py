@@ -71,7 +71,7 @@ def test_flooded_controls_never_evict_the_end_of_sequence_stop():
 def test_hostile_frames_are_refused_before_queueing_and_never_displace_real_ones(dataset):
     """Undecodable frames, frames with an implausible number and frames far too large for the
     stream reach neither the inbox nor the core; the 32 real frames all stay queued."""
-    from services.mapper import MapperCore
+    from services.mapper.core import MapperCore
     from services.mapper.__main__ import CAPACITIES, MAX_BYTES
 
     svc, s = service("mapper", CAPACITIES, MAX_BYTES, thin=("frames",))
@@ -98,7 +98,7 @@ def test_hostile_frames_are_refused_before_queueing_and_never_displace_real_ones
 
 
 def test_mapper_core_refuses_implausible_frame_numbers_and_keeps_its_acknowledgement(dataset):
-    from services.mapper import MapperCore
+    from services.mapper.core import MapperCore
 
     core = MapperCore(small_cfg())
     feed(core, dataset, range(6))
@@ -119,7 +119,7 @@ def test_mapper_core_refuses_implausible_frame_numbers_and_keeps_its_acknowledge
 
 
 def test_tracker_core_refuses_a_snapshot_version_that_cannot_be():
-    from services.tracker import TrackerCore
+    from services.tracker.core import TrackerCore
 
     core = TrackerCore()
     forged = P.FieldSnapshot(version=10 ** 9, kind="cp", config={}, aabb=np.array([[0, 0, 0], [1, 1, 1]], np.float64),

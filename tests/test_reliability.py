@@ -40,7 +40,7 @@ pytestmark = pytest.mark.usefixtures("one_thread")  # scene, dataset, zpair: con
 @pytest.fixture(scope="module")
 def mapped(dataset):
     """A MapperCore with a map (init + one window over frames 0..5) and frame 6 waiting for its pose."""
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", points_interval=1e9, checkpoint_every=0))
     feed(core, dataset, range(6))
@@ -74,7 +74,7 @@ def test_fuzz_mapper_core_10k_malformed_messages(mapped, dataset):
 
 
 def test_fuzz_tracker_core_10k_malformed_messages(mapped, dataset):
-    from services.tracker import TrackerCore, TrackerServiceOptions
+    from services.tracker.core import TrackerCore, TrackerServiceOptions
 
     snap = P.decode(mapped.latest_field_bytes, P.FieldSnapshot)
     core = TrackerCore(opts=TrackerServiceOptions(frontend="map", use_depth=True))  # references from the sensor depth
@@ -336,7 +336,7 @@ def test_overload_playback_faster_than_the_mapper_drops_frames_and_rss_stays_fla
 def test_checkpoint_write_is_atomic_when_the_process_dies_mid_write(dataset, tmp_path, monkeypatch):
     """A crash while the next checkpoint is being written (here: torch.save raising half-way)
     leaves the previous checkpoint intact and loadable; the temp file is never the checkpoint."""
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     opts = dict(pose_source="gt", out=str(tmp_path), points_interval=1e9, checkpoint_every=1)
     core = MapperCore(small_cfg(), MapperServiceOptions(**opts))
@@ -371,7 +371,7 @@ def test_mapper_kill9_resumes_from_the_last_checkpoint_losing_at_most_one_window
     """kill -9 of a mapper process busy in its third update; restarted with the same --out it
     resumes from the checkpoint of the second (the one in progress is the only loss), maps the
     rest, and its final map is bit-identical to an uninterrupted run (in-process reference)."""
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     over = {"iters_per_window": 40}  # ~0.4 s updates: the kill lands inside one
     cfg = mapper_yaml(tmp_path, **over)
@@ -620,8 +620,8 @@ def test_a_first_frame_the_services_cannot_use_is_rejected_not_adopted(dataset):
     """The first frame fixes a service's camera. One the mapper / tracker cannot use (distortion
     coefficients, a principal point far outside the image) is counted and rejected, and the next
     good frame still starts the stream (before the fix it was adopted and every later frame failed)."""
-    from services.mapper import MapperCore, MapperServiceOptions
-    from services.tracker import TrackerCore
+    from services.mapper.core import MapperCore, MapperServiceOptions
+    from services.tracker.core import TrackerCore
 
     good = P.frame_from_dataset(dataset[0], seq=0)
     distorted = dataclasses.replace(good, camera=dict(good.camera, dist=[0.1, 0.0, 0.0, 0.0]))

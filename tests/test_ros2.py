@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("rosbags")
 
 from fmapping import protocol as P  # noqa: E402
-from services.ros2 import BridgeCore, Topics  # noqa: E402
+from services.ros2.core import BridgeCore, Topics  # noqa: E402
 from services.ros2 import convert as C  # noqa: E402
 
 

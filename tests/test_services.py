@@ -165,7 +165,7 @@ def _field_state(core):
 
 def test_mapper_core_gt_snapshots_rebuild_the_field_and_bad_input_changes_nothing(dataset, tmp_path):
     from fmapping.field import FieldConfig, field_from_snapshot
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", out=str(tmp_path), points_interval=1e9,
                                                         checkpoint_every=0))
@@ -211,7 +211,7 @@ def test_mapper_core_stop_request_cancels_the_final_export_not_the_quick_one(dat
     between views; the quick write the shell makes on a stop request runs although it stands."""
     from fmapping.cancel import Cancelled
     from fmapping.trajectory import read_tum_trajectory
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     stop = []
     core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", out=str(tmp_path), points_interval=1e9,
@@ -238,7 +238,7 @@ def test_mapper_core_stop_request_cancels_the_final_export_not_the_quick_one(dat
 
 
 def test_mapper_core_external_source_waits_for_its_poses(dataset):
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="external", points_interval=1e9,
                                                         checkpoint_every=0))
@@ -260,7 +260,7 @@ def test_mapper_core_external_source_waits_for_its_poses(dataset):
 def test_mapper_core_takes_a_later_pose_of_an_integrated_frame_as_its_refinement(dataset):
     """The mono tracker republishes the poses its bundle adjustment moved: the mapper replaces
     the pose of a frame it integrated, and counts poses of frames it never held as stale."""
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="tracker", points_interval=1e9,
                                                         checkpoint_every=0))
@@ -286,7 +286,7 @@ def test_mapper_core_announces_its_newest_keyframe_for_the_viewer(dataset):
     keyframe after each update, which ``io view`` draws at that frame's pose."""
     pytest.importorskip("rerun")
     from services.io import view
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", points_interval=1e9, checkpoint_every=0))
     seqs = [10 + 3 * i for i in range(10)]  # frame numbers apart from the mapper's frame ids 0..9
@@ -320,7 +320,7 @@ def test_mapper_core_announces_its_newest_keyframe_for_the_viewer(dataset):
 
 
 def test_mapper_checkpoint_resume(dataset, tmp_path):
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     opts = dict(pose_source="gt", out=str(tmp_path), points_interval=1e9, checkpoint_every=1)
     a = MapperCore(small_cfg(), MapperServiceOptions(**opts))
@@ -344,7 +344,7 @@ def test_mapper_checkpoint_resume(dataset, tmp_path):
 def test_mapper_finish_writes_outputs(dataset, tmp_path):
     from fmapping.ply import read_ply
     from fmapping.trajectory import read_tum_trajectory
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", out=str(tmp_path), points_interval=1e9,
                                                         mesh_resolution=24))
@@ -358,7 +358,7 @@ def test_mapper_finish_writes_outputs(dataset, tmp_path):
 
 
 def test_mapper_core_skips_a_frame_whose_pose_never_comes(dataset):
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     now = [0.0]
     core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="external", points_interval=1e9,
@@ -375,7 +375,7 @@ def test_mapper_core_skips_a_frame_whose_pose_never_comes(dataset):
 # ---------------------------------------------------------------------------- tracker core
 def test_tracker_core_waits_for_the_map_then_answers_every_frame(dataset):
     from fmapping.field import FieldConfig, build_field
-    from services.tracker import TrackerCore, TrackerServiceOptions
+    from services.tracker.core import TrackerCore, TrackerServiceOptions
 
     core = TrackerCore(opts=TrackerServiceOptions(frontend="map", use_depth=True))
     for i in range(6):
@@ -411,7 +411,7 @@ def test_tracker_core_answers_lost_when_the_map_is_empty(dataset):
     import dataclasses
 
     from fmapping.field import FieldConfig, build_field
-    from services.tracker import TrackerCore, TrackerServiceOptions
+    from services.tracker.core import TrackerCore, TrackerServiceOptions
 
     # reference depth rendered from the map, which is empty (clear field)
     core = TrackerCore(opts=TrackerServiceOptions(frontend="map"))
@@ -433,8 +433,8 @@ def test_restarted_tracker_resyncs_from_the_latest_snapshot(dataset, tmp_path):
     """A tracker that starts after the map exists (restart / late join) gets only the latest
     snapshot (map/latest) and new frames: it renders its first reference from the map at the
     snapshot's frame pose and answers every new frame at once (tracked or lost)."""
-    from services.mapper import MapperCore, MapperServiceOptions
-    from services.tracker import TrackerCore, TrackerServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
+    from services.tracker.core import TrackerCore, TrackerServiceOptions
 
     mapper = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", points_interval=1e9, checkpoint_every=0))
     feed(mapper, dataset, range(6))
@@ -479,7 +479,7 @@ def test_mono_tracker_core_is_the_library_front_end_anchored_by_gt(room320):
     from fmapping.tracking.direct_tracker import TrackerConfig
     from fmapping.geometry import pose_distance
     from fmapping.tracking.mono import MonoFrontend
-    from services.tracker import TrackerCore
+    from services.tracker.core import TrackerCore
 
     ds = open_dataset(room320)
     n = len(ds)
@@ -531,7 +531,7 @@ def test_mono_tracker_core_without_anchors_uses_the_unit_depth_convention(room32
     measured: 0.2 mm RMSE after Sim3)."""
     from fmapping.datasets import open_dataset
     from fmapping.metrics import ate
-    from services.tracker import TrackerCore
+    from services.tracker.core import TrackerCore
 
     ds = open_dataset(room320)
     core = TrackerCore()
@@ -549,7 +549,7 @@ def test_mono_tracker_core_holds_poses_until_the_late_anchor_and_releases_them_o
     """A stream that stops before frame 14: the poses held for the late anchor leave on the
     ``stop`` control, at the bootstrap's scale, and every frame is answered once."""
     from fmapping.datasets import open_dataset
-    from services.tracker import TrackerCore
+    from services.tracker.core import TrackerCore
 
     ds = open_dataset(room320)
     core = TrackerCore()
@@ -572,7 +572,7 @@ def test_mono_tracker_core_restarts_a_failed_bootstrap_and_answers_its_frames(ro
     once the camera moves, tracking starts."""
     from fmapping.datasets import open_dataset
     from fmapping.tracking.mono import MonoConfig
-    from services.tracker import TrackerCore
+    from services.tracker.core import TrackerCore
 
     ds = open_dataset(room320)
     core = TrackerCore(mono_cfg=MonoConfig(init_max_frames=12))
@@ -950,8 +950,8 @@ def test_tracker_core_keeps_tracking_when_snapshots_arrive_late(dataset):
     frame j + 4. Every frame is answered, none lost, poses near GT, and a late snapshot keeps the
     motion model at the newest frame (it used to restart it at frame j, predicting the past)."""
     from service_helpers import gt_messages
-    from services.mapper import MapperCore, MapperServiceOptions
-    from services.tracker import TrackerCore, TrackerServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
+    from services.tracker.core import TrackerCore, TrackerServiceOptions
 
     mapper = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", checkpoint_every=0))
     n, lag = len(dataset), 4

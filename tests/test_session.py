@@ -79,7 +79,7 @@ def test_pose_session_finish_releases_what_the_late_anchor_held(room):
 
 def test_the_tracker_service_publishes_exactly_the_session_updates(room):
     """TrackerCore (mono) is a thin shell: its pose messages are the session's updates, in order."""
-    from services.tracker import TrackerCore
+    from services.tracker.core import TrackerCore
 
     core = TrackerCore()
     msgs = []

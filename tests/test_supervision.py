@@ -293,7 +293,7 @@ def test_mapper_skips_the_frames_a_restarted_pose_source_will_never_answer(datas
     of holding the player's window for pose_timeout (30 s)."""
     from fmapping import protocol as P
     from service_helpers import feed, gt_messages, small_cfg
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="tracker"))
     feed(core, dataset, range(4), source="tracker")  # the init
@@ -333,7 +333,7 @@ def test_a_restarted_mono_tracker_relocalises_against_its_saved_keyframe(room320
     bootstrap; its poses are as close to the GT as those of a tracker that was never stopped."""
     from fmapping.datasets import open_dataset
     from fmapping.metrics import ate
-    from services.tracker import TrackerCore, TrackerServiceOptions
+    from services.tracker.core import TrackerCore, TrackerServiceOptions
 
     ds = open_dataset(room320)
     n, cut = len(ds), 26
@@ -341,7 +341,7 @@ def test_a_restarted_mono_tracker_relocalises_against_its_saved_keyframe(room320
     first = TrackerCore(opts=TrackerServiceOptions(state_path=str(state)))
     _feed_frames(first, ds, range(cut))
     assert state.is_file() and first.counters.get("states_saved") >= 1
-    from services.tracker import load_resume_state
+    from services.tracker.core import load_resume_state
 
     kept = load_resume_state(state)
     saved = kept[-1]["index"]  # the newest: the one nearest to the next frame
@@ -370,7 +370,7 @@ def test_with_resent_frames_the_mapper_waits_for_the_restarted_source_to_answer_
     before the new tracker's first answer are skipped: it answers in order and never goes back."""
     from fmapping import protocol as P
     from service_helpers import feed, gt_messages, small_cfg
-    from services.mapper import MapperCore, MapperServiceOptions
+    from services.mapper.core import MapperCore, MapperServiceOptions
 
     core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="tracker", resent_frames=True))
     feed(core, dataset, range(4), source="tracker")  # the init
@@ -389,7 +389,7 @@ def test_with_resent_frames_the_mapper_waits_for_the_restarted_source_to_answer_
 
 def test_a_state_file_that_is_not_one_is_ignored(tmp_path):
     """A damaged or foreign tracker state file: logged and ignored (the tracker bootstraps as usual)."""
-    from services.tracker import TrackerCore, TrackerServiceOptions
+    from services.tracker.core import TrackerCore, TrackerServiceOptions
 
     state = tmp_path / "state.npz"
     for content in (b"not an npz", b""):
@@ -404,7 +404,7 @@ def test_the_tracker_answers_a_frame_sent_again_with_the_pose_it_gave_it(room320
     answered them already and answers again with the same pose (the resumed mapper waits for them)."""
     from fmapping import protocol as P
     from fmapping.datasets import open_dataset
-    from services.tracker import TrackerCore
+    from services.tracker.core import TrackerCore
 
     ds = open_dataset(room320)
     core = TrackerCore()

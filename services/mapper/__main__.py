@@ -1,4 +1,4 @@
-"""``python -m services.mapper``: the mapping process (zenoh shell around :class:`services.mapper.MapperCore`).
+"""``python -m services.mapper``: the mapping process (zenoh shell around :class:`services.mapper.core.MapperCore`).
 
 Subscribes to ``frames``, ``poses/<source>`` and ``control``; publishes ``map/field`` after
 every mapper update, ``map/points`` at a bounded rate, ``poses/mapper`` (refined window
@@ -20,7 +20,7 @@ from fmapping import protocol as P
 from fmapping.cancel import Cancelled
 from services.common import (MIB, FirstMessage, Service, add_common_args, add_first_message_arg, available_cpus,
                              run_main, service_parser, set_torch_threads, setup_logging)
-from services.mapper import POSE_SOURCES, MapperCore, MapperServiceOptions, load_mapper_config
+from services.mapper.core import POSE_SOURCES, MapperCore, MapperServiceOptions, load_mapper_config
 
 
 def build_parser() -> argparse.ArgumentParser:

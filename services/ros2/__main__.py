@@ -29,7 +29,7 @@ def _env_domain() -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from services.ros2 import Topics
+    from services.ros2.core import Topics
     from services.ros2.convert import CAMERA_FRAME, DISTROS, WORLD_FRAME
 
     t = Topics()
@@ -64,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def make_core(args, svc: Service):
-    from services.ros2 import BridgeCore, Topics
+    from services.ros2.core import BridgeCore, Topics
     from services.ros2.convert import TopicKeys, default_distro
 
     ros = TopicKeys(args.key_style, args.ros_prefix, args.domain, default_distro(args.distro))

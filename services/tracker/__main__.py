@@ -1,4 +1,4 @@
-"""``python -m services.tracker``: the tracking process (zenoh shell around :class:`services.tracker.TrackerCore`).
+"""``python -m services.tracker``: the tracking process (zenoh shell around :class:`services.tracker.core.TrackerCore`).
 
 Subscribes to ``frames``, ``map/field``, ``poses/mapper``, ``control`` and (front end
 ``mono``) the anchor poses ``poses/<anchor>``; publishes ``poses/tracker`` and
@@ -13,7 +13,7 @@ import logging
 from fmapping.runtime import limit_blas_threads, retain_freed_memory
 from services.common import (MIB, FirstMessage, Service, add_common_args, add_first_message_arg, query_latest,
                              run_main, service_parser, set_torch_threads, setup_logging)
-from services.tracker import TrackerCore, TrackerServiceOptions, load_tracker_config
+from services.tracker.core import TrackerCore, TrackerServiceOptions, load_tracker_config
 
 
 def build_parser() -> argparse.ArgumentParser:
