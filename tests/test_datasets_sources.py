@@ -388,8 +388,8 @@ def test_play_streams_a_live_camera_to_its_end(tmp_path):
     import argparse
 
     from fmapping import protocol as P
-    from services import common as C
     from services.io import play
+    from services.transport import Service
 
     class Session:  # records what would go on the bus
         def __init__(self):
@@ -406,7 +406,7 @@ def test_play_streams_a_live_camera_to_its_end(tmp_path):
     args = play.add_args(argparse.ArgumentParser()).parse_args(
         ["--data", "camera:0", "--ack-from", "", "--wait-for", ""])
     session, keys = Session(), P.Keys("live")
-    svc = C.Service("play", args, session=session, keys=keys, install_signals=False)
+    svc = Service("play", args, session=session, keys=keys, install_signals=False)
     assert play.Player(svc, live, args).run() == 0
     frames = [P.decode(d, P.Frame) for k, d in session.puts if k == keys.frames]
     assert [f.seq for f in frames] == [0, 1, 2, 3]
@@ -419,8 +419,8 @@ def test_play_streams_a_live_camera_to_its_end(tmp_path):
 def _up_play_argv(monkeypatch, argv):
     """The command line `fmapping up ARGV` gives io play (after `services.io play`), no process started;
     None when up refused the input."""
-    from fmapping import launcher
-    from fmapping.cli import main
+    from services.cli import main
+    from services.launcher import up as launcher
 
     started = {}
 
@@ -432,9 +432,9 @@ def _up_play_argv(monkeypatch, argv):
             pass
 
     monkeypatch.setattr(launcher, "Proc", FakeProc)
-    monkeypatch.setattr(launcher, "_wait_ready", lambda procs, timeout: None)
-    monkeypatch.setattr(launcher, "_monitor", lambda procs, *a, **k: 0)
-    monkeypatch.setattr(launcher, "_stop_all", lambda *a, **k: None)
+    monkeypatch.setattr(launcher, "wait_ready", lambda procs, timeout: None)
+    monkeypatch.setattr(launcher, "monitor", lambda procs, *a, **k: 0)
+    monkeypatch.setattr(launcher, "stop_all", lambda *a, **k: None)
     rc = main(["up", "--poses", "gt", "--view", "save", "--insecure"] + argv)
     if rc != 0:
         assert "play" not in started  # bad input: refused before any process
@@ -445,8 +445,8 @@ def _up_play_argv(monkeypatch, argv):
 
 def _play_opens(argv):
     """The source `python -m services.io play ARGV` plays (its own parser, its own opening)."""
-    from services.common import service_parser
     from services.io import play
+    from services.process import service_parser
 
     return play.open_source(play.add_args(service_parser("services.io play", None)).parse_args(argv))
 
