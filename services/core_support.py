@@ -49,6 +49,7 @@ class Counters:
         with self._lock:
             return dict(self._c)
 
+
 def usable_camera(cam: Any, undistorted: bool = False) -> dict:
     """The protocol normal form of camera dict ``cam`` (``Frame.camera``) when the library can use
     it (:class:`fmapping.camera.PinholeCamera` accepts it; no distortion coefficients when

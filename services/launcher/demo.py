@@ -9,6 +9,7 @@ from pathlib import Path
 from fmapping.up_config import LauncherOptions
 from services.launcher.up import make_scene, run_up
 
+
 def run_demo(args) -> int:
     """``fmapping demo``, the main job on the embedded default: a synthetic room in ``args.out/scene``, run
     the multi-process system on it (``fmapping up``, poses from the RGB-only tracker unless
@@ -19,7 +20,7 @@ def run_demo(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     scene_dir = make_scene(out, LauncherOptions(frames=int(getattr(args, "frames", 200)),
-                                            seed=int(getattr(args, "seed", 0))))
+                                                seed=int(getattr(args, "seed", 0))))
     poses = getattr(args, "poses", None) or "tracker"
     uargs = argparse.Namespace(data=str(scene_dir), poses=poses, out=str(out), fps=0.0,
                                config=getattr(args, "config", None))

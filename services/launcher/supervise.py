@@ -133,7 +133,7 @@ def linger(view: Proc, url: str) -> None:
 
 
 def monitor(procs: dict[str, Proc], t0: float, timeout: Optional[float], out: Path, serving: tuple = (),
-             infra: Optional[dict] = None, errors: Optional[list] = None) -> int:
+            infra: Optional[dict] = None, errors: Optional[list] = None) -> int:
     """Wait until every process has exited (those in ``serving``, a live viewer, may serve on); a process
     of ``infra`` (the router) must stay up meanwhile, and every running service must keep beating
     (:data:`HEARTBEAT_TIMEOUT`). A failure is printed and appended to ``errors``; returns 1 then."""
