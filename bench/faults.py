@@ -19,7 +19,7 @@ tracker`` run (secure default: per-run credentials, access control) several time
 
 For each: exit code, wall time, restarts (``OUT/up.json``), frames in the mapper's trajectory, ATE
 against the GT (no alignment: the GT world frame the tracker anchors to; and Sim3), the map's
-accuracy and completion ratio (5 cm) after the trajectory's Sim3 (``fmapping.launcher.demo_metrics``),
+accuracy and completion ratio (5 cm) after the trajectory's Sim3 (``services.launcher.demo.demo_metrics``),
 the peak resident memory of every service (``/proc/<pid>/status`` VmRSS sampled every 0.5 s, over
 restarts), and for the flood the messages sent, the rate reached and what the services counted
 (``bad_input``). Writes ``bench/results/faults.json`` and ``faults.md``; ``bench/report.py`` puts
@@ -102,7 +102,7 @@ class RssWatch(threading.Thread):
 
 
 def up_cmd(scene: Path, out: Path, cfg: Path) -> list[str]:
-    return [sys.executable, "-m", "fmapping.cli", "up", "--data", str(scene), "--poses", "tracker", "--out",
+    return [sys.executable, "-m", "services.cli", "up", "--data", str(scene), "--poses", "tracker", "--out",
             str(out), "--config", str(cfg), "--view", "save"]
 
 
@@ -183,7 +183,7 @@ class Flood(threading.Thread):
 
 # ---------------------------------------------------------------------------- one run
 def one_run(kind: str, scene: Path, cfg: Path, work: Path, rate: float, limit: float) -> dict:
-    from fmapping.launcher import demo_metrics
+    from services.launcher.demo import demo_metrics
 
     out = work / kind
     frames = json.loads((scene / "scene.json").read_text())["frames"]
@@ -213,7 +213,7 @@ def one_run(kind: str, scene: Path, cfg: Path, work: Path, rate: float, limit: f
             raise RuntimeError(f"{kind}: fmapping up did not finish within {limit:.0f} s")
         if kind == "resume":
             time.sleep(3.0)  # its services stop with it (--exit-with-parent), writing what they have
-            again = subprocess.run([sys.executable, "-m", "fmapping.cli", "up", "--resume", str(out)], cwd=ROOT,
+            again = subprocess.run([sys.executable, "-m", "services.cli", "up", "--resume", str(out)], cwd=ROOT,
                                    capture_output=True, text=True, timeout=limit)
             rec["rc"] = again.returncode
         else:

@@ -7,7 +7,7 @@
     python bench/system.py --init-iters 25 --max-seconds 240       # shorter init (does not converge)
 
 One synthetic scene (``fmapping.synthetic.generate_scene``) is generated once and reused.
-For every playback rate the whole system runs through :func:`fmapping.launcher.run_up`
+For every playback rate the whole system runs through :func:`services.launcher.up.run_up`
 (``--poses tracker``: ``services.mapper``, ``services.io record``, ``services.io view``
 unless ``--no-view``, ``services.tracker`` and ``services.io play --fps F``, each an OS
 process, zenoh peers on loopback). This process opens its own zenoh session, which
@@ -147,8 +147,8 @@ class Monitor:
     the arrival time of each frame's GT / tracker / mapper pose (monotonic seconds)."""
 
     def __init__(self, ns: str):
-        from fmapping.launcher import free_port
-        from services.common import payload_bytes, zenoh_config
+        from services.zenoh_session import free_port
+        from services.zenoh_session import payload_bytes, zenoh_config
         import zenoh
 
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -248,7 +248,7 @@ def run_one(fps: float, scene: Path, out: Path, mapper_cfg: dict, max_seconds: f
             interval: float, poses: str = "tracker") -> dict:
     import yaml
 
-    from fmapping.launcher import run_up
+    from services.launcher.up import run_up
 
     if out.exists():
         shutil.rmtree(out)  # a left-over checkpoint would make the mapper resume

@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from fmapping import protocol as P  # noqa: E402
-from fmapping.launcher import free_port  # noqa: E402
+from services.zenoh_session import free_port  # noqa: E402
 
 KEY = "fmapping/bench/{kind}"
 

@@ -58,7 +58,9 @@ def status_name(source: str) -> str:
 
 
 def main(argv=None) -> int:
-    from services.common import Service, add_common_args, setup_logging
+    from services.process import setup_logging
+    from services.transport import Service
+    from services.zenoh_session import add_common_args
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--traj", required=True, help="TUM trajectory: timestamp tx ty tz qx qy qz qw")

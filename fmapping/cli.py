@@ -1,4 +1,6 @@
-"""The ``fmapping`` command line. Each sub-command is a thin call into the library.
+"""The ``fmapping`` command line of the library. Each sub-command is a thin call into the library;
+``up`` and ``demo``, which start the service processes, are added by :mod:`services.cli`, the
+``fmapping`` console entry point (``python -m fmapping.cli`` has the library's sub-commands only).
 
     fmapping synth --out DIR [--seed S] [--frames N] [--size WxH]
     fmapping info  --data DIR [--camera fx,fy,cx,cy]
@@ -22,7 +24,7 @@ import signal
 import sys
 import threading
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 from fmapping.runtime import retain_freed_memory
 
@@ -59,7 +61,7 @@ def source_options(args) -> dict:
     return {"fps": getattr(args, "data_fps", None), "topic": getattr(args, "topic", None)}
 
 
-def _bbox(text: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
+def parse_bbox(text: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
     try:
         v = [float(x) for x in text.split(",")]
     except ValueError:
@@ -81,7 +83,10 @@ def _size(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"size must be WxH, e.g. 320x240, got {text!r}") from None
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(more: Sequence[Callable[[argparse._SubParsersAction], None]] = ()
+                 ) -> argparse.ArgumentParser:
+    """The parser of the library's sub-commands; each function of ``more`` adds its own sub-commands
+    (after ``eval``, before ``config``): :mod:`services.cli` adds ``up`` and ``demo``, which start processes."""
     ap = argparse.ArgumentParser(prog="fmapping", description="Factorized neural field mapping for dense RGB SLAM.")
     ap.add_argument("--version", action=_Version, help="print the version and exit")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -109,7 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="field type (default: the config's field.kind, cp)")
     p.add_argument("--use-depth", action="store_true", help="supervise with depth when the dataset has it")
     p.add_argument("--device", default="auto", help="torch device: auto (CUDA when present, else CPU), cpu, cuda")
-    p.add_argument("--bbox", type=_bbox, default=None, help=BBOX_HELP)
+    p.add_argument("--bbox", type=parse_bbox, default=None, help=BBOX_HELP)
 
     p = sub.add_parser("slam", help="track and map from RGB (full SLAM loop)")
     _add_data_args(p)
@@ -119,7 +124,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="YAML overrides of the SLAM config (all keys: fmapping config dump slam; default: none)")
     p.add_argument("--use-depth", action="store_true", help="use depth when the dataset has it")
     p.add_argument("--device", default="auto", help="torch device: auto (CUDA when present, else CPU), cpu, cuda")
-    p.add_argument("--bbox", type=_bbox, default=None, help=BBOX_HELP)
+    p.add_argument("--bbox", type=parse_bbox, default=None, help=BBOX_HELP)
     p.add_argument("--no-export", dest="export", action="store_false",
                    help="skip map.ply / mesh.ply at the end (traj.txt and stats.json are still written)")
 
@@ -139,43 +144,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--max-dt", type=float, default=0.02, help="seconds: timestamps further apart do not match")
     e.add_argument("--delta", type=int, default=1, help="RPE frame step")
 
-    p = sub.add_parser("up", help="run the multi-process system (io, tracker, mapper over zenoh)")
-    p.add_argument("--data", default=None,
-                   help=DATA_HELP + ", or camera:N for the live webcam N (needs --camera) (default: a generated "
-                        "synthetic scene)")
-    p.add_argument("--camera", default=None, help=CAMERA_HELP)
-    p.add_argument("--poses", default="tracker", choices=["tracker", "gt", "external"],
-                   help="pose source of the mapper: the RGB-only tracker, the dataset's GT, or an external "
-                        "producer")
-    p.add_argument("--out", default="out/up", help="output folder: map.ply, mesh.ply, traj.txt, stats.json, logs/")
-    p.add_argument("--fps", type=float, default=0.0,
-                   help="playback rate in frames per second (0 = as fast as consumers keep up; the frames' "
-                        "timestamps of an image folder or video: --data-fps)")
-    add_source_args(p, ("--data-fps",))
-    p.add_argument("--config", default=None, help="YAML with mapper / tracker / launcher sections "
-                                                  "(all keys: fmapping config dump up; default: none)")
-    p.add_argument("--bbox", type=_bbox, default=None, help=BBOX_HELP)
-    p.add_argument("--view", default="auto", choices=["auto", "live", "save"],
-                   help="live: serve rerun's web viewer (URL printed) and still save OUT/run.rrd; save: only "
-                        "OUT/run.rrd; auto: live when there is a display and a terminal, else save (default: auto)")
-    p.add_argument("--view-port", type=int, default=9090, help="web viewer port of --view live (default: 9090)")
-    p.add_argument("--grpc-port", type=int, default=9876, help="rerun gRPC port of --view live (default: 9876)")
-    p.add_argument("--resume", default=None, metavar="OUT",
-                   help="continue the run of fmapping up in OUT that was killed: the same arguments, the mapper "
-                        "from its checkpoint, play from the first frame it had not mapped, the tracker "
-                        "re-localised against its last keyframe, record adding to its files")
-    p.add_argument("--insecure", action="store_true",
-                   help="local debugging only: no per-run credentials and no access control, the services form "
-                        "an open zenoh peer mesh on loopback that any local process can join (default: secure, "
-                        "see docs/security.md)")
-
-    p = sub.add_parser("demo", help="the multi-process system on the embedded synthetic default, with metrics")
-    p.add_argument("--out", default="out/demo", help="output folder (the scene goes to OUT/scene)")
-    p.add_argument("--frames", type=int, default=200, help="frames of the generated scene")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the generated scene")
-    p.add_argument("--poses", default="tracker", choices=["tracker", "gt"],
-                   help="tracker: RGB-only tracking (default); gt: map with the ground-truth poses")
-    p.add_argument("--config", default=None, help="fmapping up config (mapper / tracker / launcher sections)")
+    for add in more:  # sub-commands defined elsewhere (services.cli: up, demo)
+        add(sub)
 
     p = sub.add_parser("config", help="show the configs that --config files override")
     csub = p.add_subparsers(dest="action", required=True)
@@ -190,7 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 class DefaultsHelp(argparse.ArgumentDefaultsHelpFormatter):
     """Appends '(default: X)' to a flag's help, except where there is nothing to say (None, an
-    on/off flag) or the text already says it in words. Also the services' (``services.common.service_parser``)."""
+    on/off flag) or the text already says it in words. Also the services' (``services.process.service_parser``)."""
 
     def _get_help_string(self, action):
         text = action.help or ""
@@ -247,7 +217,7 @@ def default_config(which: str):
 
         return SlamConfig()
     if which == "up":
-        from fmapping.launcher import UpConfig, up_config_dict
+        from fmapping.up_config import UpConfig, up_config_dict
 
         return up_config_dict(UpConfig())
     raise ValueError(f"no config {which!r} (one of {', '.join(CONFIGS)})")
@@ -360,31 +330,22 @@ def cmd_eval(a) -> int:
     return 0
 
 
-def cmd_up(a) -> int:
-    from fmapping.launcher import run_up
-
-    return run_up(a)
-
-
-def cmd_demo(a) -> int:
-    from fmapping.launcher import run_demo
-
-    return run_demo(a)
-
-
 COMMANDS = {
     "synth": cmd_synth, "info": cmd_info, "map": cmd_map, "slam": cmd_slam,
-    "eval": cmd_eval, "up": cmd_up, "demo": cmd_demo, "config": cmd_config,
+    "eval": cmd_eval, "config": cmd_config,
 }
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    args = build_parser().parse_args(argv)
+def main(argv: Optional[Sequence[str]] = None, parser: Optional[argparse.ArgumentParser] = None,
+         commands: Optional[dict] = None) -> int:
+    """Run the sub-command of ``argv``; ``parser`` / ``commands`` (default: the library's own) let
+    :mod:`services.cli` add its sub-commands."""
+    args = (parser or build_parser()).parse_args(argv)
     retain_freed_memory()
     try:
         if getattr(args, "out", None) and not getattr(args, "resume", None):  # --resume OUT: that folder's run
             check_out(args.out)
-        return COMMANDS[args.command](args) or 0
+        return (commands or COMMANDS)[args.command](args) or 0
     except (FileNotFoundError, ValueError) as e:  # bad input: one clear line, no traceback
         print(f"fmapping {args.command}: error: {e}", file=sys.stderr)
         return 2

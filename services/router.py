@@ -13,7 +13,8 @@ import logging
 import os
 import time
 
-from services.common import LOG_LEVEL_HELP, Shutdown, run_main, service_parser, setup_logging, write_json_atomic
+from services.process import LOG_LEVEL_HELP, Shutdown, run_main, service_parser, setup_logging
+from services.transport import write_json_atomic
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -31,7 +31,7 @@ class FakeProc:
 def fake_up(monkeypatch) -> dict:
     """Make ``fmapping up`` start no process: returns {service name: command line} of what it would
     start; readiness, monitoring and stopping do nothing."""
-    from fmapping import launcher
+    from services.launcher import up as launcher
 
     started: dict = {}
 
@@ -40,9 +40,9 @@ def fake_up(monkeypatch) -> dict:
         return FakeProc(name, argv, out, env)
 
     monkeypatch.setattr(launcher, "Proc", proc)
-    monkeypatch.setattr(launcher, "_wait_ready", lambda procs, timeout: None)
-    monkeypatch.setattr(launcher, "_monitor", lambda procs, *a, **k: 0)
-    monkeypatch.setattr(launcher, "_stop_all", lambda *a, **k: None)
+    monkeypatch.setattr(launcher, "wait_ready", lambda procs, timeout: None)
+    monkeypatch.setattr(launcher, "monitor", lambda procs, *a, **k: 0)
+    monkeypatch.setattr(launcher, "stop_all", lambda *a, **k: None)
     return started
 
 

@@ -29,7 +29,7 @@ from faults import BENCH_MAPPER as FAULT_MAPPER  # noqa: E402, F401
 @dataclass
 class FaultRun:
     """What one run left: exit code, the launcher's output, OUT/up.json, the mapper's stats and the
-    metrics of :func:`fmapping.launcher.demo_metrics` (ATE of OUT/traj.txt, map vs visible GT)."""
+    metrics of :func:`services.launcher.demo.demo_metrics` (ATE of OUT/traj.txt, map vs visible GT)."""
     rc: int
     log: str
     out: Path
@@ -59,7 +59,7 @@ def _status(out: Path, name: str) -> dict:
 
 
 def up_argv(scene: Path, out: Path, poses: str, config: Path, *extra: str) -> list[str]:
-    return [sys.executable, "-m", "fmapping.cli", "up", "--data", str(scene), "--poses", poses, "--out", str(out),
+    return [sys.executable, "-m", "services.cli", "up", "--data", str(scene), "--poses", poses, "--out", str(out),
             "--config", str(config), *extra]
 
 
@@ -68,7 +68,7 @@ def run_with_fault(scene: Path, out: Path, poses: str, config: Path, kill: Optio
     """``fmapping up`` on ``scene``; with ``kill``, that service is killed with SIGKILL once its status
     acknowledges frame ``at_frame`` (the mapper: also once it has a checkpoint). Waits at most
     ``timeout`` s for the run (then kills it and fails the test with the log)."""
-    from fmapping.launcher import demo_metrics
+    from services.launcher.demo import demo_metrics
 
     proc = subprocess.Popen(argv or up_argv(scene, out, poses, config), cwd=ROOT, env=subprocess_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

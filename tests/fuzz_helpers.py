@@ -20,7 +20,7 @@ import numpy as np
 from fakes import FakeSession
 from fmapping import protocol as P
 from service_helpers import pack, raw_message, wire_array
-from services import common as C
+from services.transport import Service
 
 N_FUZZ = 10_000
 
@@ -547,7 +547,7 @@ def io_service(name: str, parser_args: list, add_args) -> tuple:
     import argparse
 
     args = add_args(argparse.ArgumentParser()).parse_args(parser_args)
-    return C.Service(name, args, session=FakeSession(), keys=P.Keys("fuzz"), install_signals=False), args
+    return Service(name, args, session=FakeSession(), keys=P.Keys("fuzz"), install_signals=False), args
 
 
 def fuzz_handler(name: str, svc, state: Callable[[], object], handle, seed: int, bases: dict, chans: list) -> None:

@@ -22,7 +22,7 @@ import torch
 
 from fmapping import protocol as P
 from service_helpers import ROOT, GtProducer, feed, small_cfg, subprocess_env
-from services import common as C
+from services.zenoh_session import payload_bytes
 
 TIMEOUT = 60.0
 
@@ -37,7 +37,7 @@ class StatusWatch:
         self.sub = session.declare_subscriber(key, self._on)
 
     def _on(self, sample):
-        st = P.decode(C.payload_bytes(sample), P.Status)
+        st = P.decode(payload_bytes(sample), P.Status)
         with self.cond:
             if self.latest is None or st.seq > self.latest.seq:
                 self.latest = st

@@ -19,7 +19,7 @@ import msgpack
 import numpy as np
 
 from fmapping import protocol as P
-from fmapping.launcher import free_port
+from services.zenoh_session import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -88,9 +88,9 @@ def feed(core, ds, ids, source: str = "gt", pose_first: bool = True) -> list:
 
 def peer_conf(listen=None, connect=None):
     """A zenoh peer config on explicit endpoints, multicast scouting off."""
-    from services import common as C
+    from services.zenoh_session import zenoh_config
 
-    return C.zenoh_config("peer", listen=listen or [], connect=connect or [], multicast=False)
+    return zenoh_config("peer", listen=listen or [], connect=connect or [], multicast=False)
 
 
 def loopback_endpoint() -> str:

@@ -34,6 +34,28 @@ def test_library_and_services_import_without_matplotlib():
     assert int(r.stdout.split()[-1]) > 20
 
 
+def test_fmapping_lists_every_sub_command_and_the_library_never_imports_services():
+    # the console entry point (services.cli) adds the process sub-commands to the library's
+    from fmapping.cli import build_parser as library_parser
+    from services.cli import build_parser
+
+    def commands(parser):
+        import argparse
+
+        return list(next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices)
+
+    assert commands(build_parser()) == ["synth", "info", "map", "slam", "eval", "up", "demo", "config"]
+    assert "up" not in commands(library_parser()) and "demo" not in commands(library_parser())
+    r = subprocess.run([sys.executable, "-m", "services.cli", "--help"], cwd=ROOT, capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0 and "{synth,info,map,slam,eval,up,demo,config}" in r.stdout
+    # layering: fmapping/ never imports services (nor zenoh)
+    for path in (ROOT / "fmapping").rglob("*.py"):
+        text = path.read_text()
+        assert "import services" not in text and "from services" not in text, path
+        assert "import zenoh" not in text, path
+
+
 # ------------------------------------------------------------------ --version
 def test_version_from_metadata_or_package(capsys, monkeypatch):
     import importlib.metadata
@@ -78,7 +100,7 @@ def test_config_dump_loads_back_unchanged(which, tmp_path, capsys):
 
 def test_config_dump_up_loads_back_unchanged(tmp_path, capsys):
     from fmapping.config import load_config
-    from fmapping.launcher import LauncherOptions, UpConfig, split_config
+    from fmapping.up_config import LauncherOptions, UpConfig, split_config
     from fmapping.mapping import MapperConfig
     from fmapping.tracking.direct_tracker import TrackerConfig
 
@@ -113,7 +135,7 @@ def _subparsers(parser, path=()):
 def test_every_flag_has_help_with_its_default():
     import argparse
 
-    from fmapping.cli import build_parser
+    from services.cli import build_parser
 
     seen = 0
     parsers = dict(_subparsers(build_parser()))
@@ -138,9 +160,9 @@ def test_every_service_flag_has_help_with_its_default():
     import argparse
 
     from services import router
-    from services.common import service_parser
     from services.io import play, record, view
     from services.mapper.__main__ import build_parser as mapper_parser
+    from services.process import service_parser
     from services.ros2.__main__ import build_parser as ros2_parser
     from services.tracker.__main__ import build_parser as tracker_parser
 
@@ -208,7 +230,8 @@ def test_up_stats_get_the_intrinsics_and_the_resolved_config(scene, tmp_path):
     import time
 
     from fmapping.datasets import open_dataset
-    from fmapping.launcher import add_run_info, run_info, split_config
+    from fmapping.up_config import split_config
+    from services.launcher.up import add_run_info, run_info
 
     out = tmp_path / "up"
     cfg = tmp_path / "up.yaml"
@@ -260,9 +283,9 @@ def _image_folder(folder: Path, n: int = 3) -> Path:
 def test_data_help_lists_the_sources_and_fps_topic_reach_the_dataset(tmp_path, capsys):
     import argparse
 
-    from fmapping.cli import build_parser, main
     from fmapping.job import Job
     from fmapping.pipeline import open_job_dataset
+    from services.cli import build_parser, main
 
     parser = build_parser()
     subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
@@ -295,8 +318,9 @@ def test_data_help_lists_the_sources_and_fps_topic_reach_the_dataset(tmp_path, c
 def test_up_takes_a_live_camera_with_its_intrinsics_and_passes_them_to_play(tmp_path, monkeypatch, capsys):
     """`fmapping up --data camera:N` needs --camera (one-line error otherwise) and hands both to io play;
     the launcher itself never opens the device (stats.json gets the --camera given)."""
-    from fmapping import launcher
-    from fmapping.cli import main
+    from fmapping.up_config import LauncherOptions
+    from services.cli import main
+    from services.launcher import up as launcher
 
     out = tmp_path / "up"
     assert main(["up", "--data", "camera:0", "--out", str(out)]) == 2
@@ -313,16 +337,17 @@ def test_up_takes_a_live_camera_with_its_intrinsics_and_passes_them_to_play(tmp_
     play = started["play"]
     assert play[play.index("--data") + 1] == "camera:0" and play[play.index("--camera") + 1] == "500,500,320,240"
     assert opened == []  # the device is play's alone
-    info = launcher.run_info("camera:0", "gt", None, None, launcher.LauncherOptions(), "500,500,320,240")
+    info = launcher.run_info("camera:0", "gt", None, None, LauncherOptions(), "500,500,320,240")
     assert info["dataset"] == {"root": "camera:0", "kind": "camera", "live": True, "frames": None,
                                "camera_source": "500,500,320,240"}
 
 
 def test_up_passes_camera_for_a_recorded_source_too(tmp_path, monkeypatch):
-    from fmapping import launcher
+    from fmapping.up_config import LauncherOptions
+    from services.launcher import up as launcher
 
     images = _image_folder(tmp_path / "imgs")
-    info = launcher.run_info(images, "tracker", None, None, launcher.LauncherOptions(), "30,30,16,12")
+    info = launcher.run_info(images, "tracker", None, None, LauncherOptions(), "30,30,16,12")
     assert info["dataset"]["kind"] == "images" and info["dataset"]["camera"]["fx"] == 30.0
     with pytest.raises(Exception, match="no camera intrinsics"):
-        launcher.run_info(images, "tracker", None, None, launcher.LauncherOptions())
+        launcher.run_info(images, "tracker", None, None, LauncherOptions())

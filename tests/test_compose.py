@@ -159,7 +159,7 @@ def test_router_image_and_python_package_run_the_same_zenoh(compose):
 
 def test_viewer_serves_live_on_loopback_ports_and_saves(compose):
     from services.io import view
-    from services.common import service_parser
+    from services.process import service_parser
 
     svc = compose["services"]["io-view"]
     argv = shlex.split(svc["command"])[4:]  # after `python -m services.io view`

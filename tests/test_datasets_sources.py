@@ -390,15 +390,15 @@ def test_play_streams_a_live_camera_to_its_end(tmp_path):
     import argparse
 
     from fmapping import protocol as P
-    from services import common as C
     from services.io import play
+    from services.transport import Service
 
     _video(tmp_path / "clip.mp4")
     live = LiveCamera(str(tmp_path / "clip.mp4"), camera="50,50,31.5,23.5", max_frames=4)
     args = play.add_args(argparse.ArgumentParser()).parse_args(
         ["--data", "camera:0", "--ack-from", "", "--wait-for", ""])
     session, keys = FakeSession(), P.Keys("live")
-    svc = C.Service("play", args, session=session, keys=keys, install_signals=False)
+    svc = Service("play", args, session=session, keys=keys, install_signals=False)
     assert play.Player(svc, live, args).run() == 0
     frames = [P.decode(d, P.Frame) for k, d in session.puts if k == keys.frames]
     assert [f.seq for f in frames] == [0, 1, 2, 3]
@@ -424,8 +424,8 @@ def _up_play_argv(monkeypatch, argv):
 
 def _play_opens(argv):
     """The source `python -m services.io play ARGV` plays (its own parser, its own opening)."""
-    from services.common import service_parser
     from services.io import play
+    from services.process import service_parser
 
     return play.open_source(play.add_args(service_parser("services.io play", None)).parse_args(argv))
 

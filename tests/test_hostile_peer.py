@@ -14,19 +14,22 @@ import pytest
 from fakes import FakeSession
 from fmapping import protocol as P
 from service_helpers import feed, gt_messages, small_cfg
-from services import common as C
+from services.core_support import MAX_SEQ_AHEAD, Inbox, snapshot_problem
+from services.process import EXIT_STALLED
+from services.transport import Service
+from services.zenoh_session import add_common_args
 
 KEYS = P.Keys("hostile")
 
 
-def service(name: str, capacities: dict, max_bytes: dict = None, thin=()) -> tuple[C.Service, FakeSession]:
+def service(name: str, capacities: dict, max_bytes: dict = None, thin=()) -> tuple[Service, FakeSession]:
     s = FakeSession()
-    args = C.add_common_args(argparse.ArgumentParser()).parse_args([])
-    return C.Service(name, args, capacities=capacities, max_bytes=max_bytes, session=s, keys=KEYS,
-                     install_signals=False, thin=thin), s
+    args = add_common_args(argparse.ArgumentParser()).parse_args([])
+    return Service(name, args, capacities=capacities, max_bytes=max_bytes, session=s, keys=KEYS,
+                   install_signals=False, thin=thin), s
 
 
-def drain(inbox: C.Inbox) -> list:
+def drain(inbox: Inbox) -> list:
     out = []
     while (item := inbox.get(timeout=0)) is not None:
         out.append(item)
@@ -36,7 +39,7 @@ def drain(inbox: C.Inbox) -> list:
 # ---------------------------------------------------------------------------- inbox bounds
 @pytest.mark.parametrize("thin", [(), ("frames",)])
 def test_inbox_is_bounded_in_bytes_as_well_as_items(thin):
-    box = C.Inbox({"control": 4, "frames": 1000}, thin=thin, max_bytes={"frames": 10_000})
+    box = Inbox({"control": 4, "frames": 1000}, thin=thin, max_bytes={"frames": 10_000})
     for i in range(100):
         box.put("frames", (f"k{i}", bytes(3000)))
         assert box.nbytes("frames") <= 10_000 and box.size("frames") <= 3
@@ -71,8 +74,8 @@ def test_flooded_controls_never_evict_the_end_of_sequence_stop():
 def test_hostile_frames_are_refused_before_queueing_and_never_displace_real_ones(dataset):
     """Undecodable frames, frames with an implausible number and frames far too large for the
     stream reach neither the inbox nor the core; the 32 real frames all stay queued."""
-    from services.mapper.core import MapperCore
     from services.mapper.__main__ import CAPACITIES, MAX_BYTES
+    from services.mapper.core import MapperCore
 
     svc, s = service("mapper", CAPACITIES, MAX_BYTES, thin=("frames",))
     core = MapperCore(small_cfg(), counters=svc.counters)
@@ -105,7 +108,7 @@ def test_mapper_core_refuses_implausible_frame_numbers_and_keeps_its_acknowledge
     ack = core.ack
     assert ack == 5
     pose, frame = gt_messages(dataset, 6)
-    far = P.frame_from_dataset(dataset[6], seq=ack + C.MAX_SEQ_AHEAD + 1)
+    far = P.frame_from_dataset(dataset[6], seq=ack + MAX_SEQ_AHEAD + 1)
     assert core.handle("frames", P.encode(far)) == []
     assert core.handle("poses", P.encode(P.Pose(seq=far.seq, timestamp=0.0, c2w=np.eye(4), source="gt"))) == []
     assert core.handle("poses", P.encode(P.Pose(seq=-1, timestamp=0.0, c2w=np.eye(4), source="gt"))) == []
@@ -126,8 +129,8 @@ def test_tracker_core_refuses_a_snapshot_version_that_cannot_be():
                              arrays={}, frame_seq=5)
     assert core.handle("field", P.encode(forged)) == []
     assert core.counters.get("rejected_snapshots") == 1 and core.version == 0 and "cannot follow" in core.last_error
-    assert C.snapshot_problem(7, 5, 3, 10) == "" and C.snapshot_problem(2, 5, 3, 10) != ""
-    assert C.snapshot_problem(7, 5 + C.MAX_SEQ_AHEAD * 2, 3, 10) != ""
+    assert snapshot_problem(7, 5, 3, 10) == "" and snapshot_problem(2, 5, 3, 10) != ""
+    assert snapshot_problem(7, 5 + MAX_SEQ_AHEAD * 2, 3, 10) != ""
 
 
 def test_recorder_ignores_unplayed_and_negative_poses_and_implausible_points(tmp_path):
@@ -139,7 +142,7 @@ def test_recorder_ignores_unplayed_and_negative_poses_and_implausible_points(tmp
         assert rec.on_pose(P.Pose(seq=s, timestamp=float(s), c2w=np.eye(4), source="tracker"))
     rec.on_played(7, end=True)  # the end-of-sequence stop: frames 0..7 were played
     assert not rec.on_pose(P.Pose(seq=-1, timestamp=0.0, c2w=np.eye(4), source="tracker"))  # the issue's ATE 12.67 cm
-    assert not rec.on_pose(P.Pose(seq=7 + C.MAX_SEQ_AHEAD + 1, timestamp=0.0, c2w=np.eye(4), source="tracker"))
+    assert not rec.on_pose(P.Pose(seq=7 + MAX_SEQ_AHEAD + 1, timestamp=0.0, c2w=np.eye(4), source="tracker"))
     pts = np.zeros((4, 3), np.float32)
     cols = np.zeros((4, 3), np.uint8)
     assert rec.on_points(P.PointsSnapshot(version=3, points=pts, colors=cols, frame_seq=7))
@@ -165,7 +168,7 @@ def test_play_gives_up_when_a_live_consumer_stops_acknowledging(dataset):
     s = FakeSession()
     args = play.add_args(argparse.ArgumentParser()).parse_args(
         ["--data", "x", "--window", "2", "--stall-timeout", "1.0", "--start-timeout", "5"])
-    svc = C.Service("play", args, session=s, keys=KEYS, install_signals=False)
+    svc = Service("play", args, session=s, keys=KEYS, install_signals=False)
     player = play.Player(svc, dataset, args)
     stop = threading.Event()
 
@@ -180,7 +183,7 @@ def test_play_gives_up_when_a_live_consumer_stops_acknowledging(dataset):
     t.start()
     try:
         t0 = time.monotonic()
-        assert player.run() == C.EXIT_STALLED
+        assert player.run() == EXIT_STALLED
         assert time.monotonic() - t0 < 10
     finally:
         stop.set()
@@ -198,7 +201,7 @@ def test_mapper_without_any_frame_gives_up_with_its_outputs_written(tmp_path):
     out = tmp_path / "m"
     code = main(["--poses", "gt", "--out", str(out), "--first-message-timeout", "0.5", "--status-interval", "0.1",
                  "--status-file", str(tmp_path / "status.json")], session=FakeSession(), keys=KEYS)
-    assert code == C.EXIT_STALLED
+    assert code == EXIT_STALLED
     import json
 
     status = json.loads((tmp_path / "status.json").read_text())
@@ -212,11 +215,11 @@ def test_record_without_any_pose_gives_up(tmp_path):
     args = record.add_args(argparse.ArgumentParser()).parse_args(
         ["--out", str(tmp_path / "r"), "--first-message-timeout", "0.3"])
     s = FakeSession()
-    with C.Service("record", args, capacities={"control": 4, "status": 4, "poses": 4, "points": 2}, session=s,
+    with Service("record", args, capacities={"control": 4, "status": 4, "poses": 4, "points": 2}, session=s,
                    keys=KEYS, install_signals=False) as svc:
         for _ in range(3):  # heartbeats of others are not what it waits for
             svc.inbox.put("status", (KEYS.status("mapper"), P.encode(P.Status(service="mapper"))))
-        assert record.run(svc, args) == C.EXIT_STALLED
+        assert record.run(svc, args) == EXIT_STALLED
         assert "no pose on fmapping/hostile/poses/*" in svc.status.last_error
     assert (tmp_path / "r" / "record.json").is_file()
 

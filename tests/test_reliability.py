@@ -31,7 +31,8 @@ from fuzz_helpers import (N_FUZZ, Fuzzer, decode_level, frame_semantics, fuzz_ha
 from reliability_helpers import TIMEOUT, Producer, StatusWatch, Svc, map_digest, rss_kb  # noqa: E402
 from service_helpers import (ROOT, GtProducer, feed, import_example, loopback_endpoint, mapper_yaml,  # noqa: E402
                              peer_conf, small_cfg, start_thread, subprocess_env, wait_matching)
-from services import common as C  # noqa: E402
+from services.transport import Peers  # noqa: E402
+from services.zenoh_session import payload_bytes, query_latest  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # scene, dataset, zpair: conftest.py
 
@@ -133,7 +134,7 @@ def test_fuzz_io_handlers_10k_malformed_messages_each(mapped, dataset, tmp_path)
 
     # io record: a Recorder with some poses and points already
     svc, _ = io_service("record", ["--out", str(tmp_path / "rec")], record.add_args)
-    rec, peers = record.Recorder(tmp_path / "rec"), C.Peers()
+    rec, peers = record.Recorder(tmp_path / "rec"), Peers()
     for i in range(3):
         record.handle_message(svc, rec, peers, "poses", "k", P.encode(P.Pose(seq=i, timestamp=float(i), c2w=np.eye(4),
                                                                            source="tracker")))
@@ -151,7 +152,7 @@ def test_fuzz_io_handlers_10k_malformed_messages_each(mapped, dataset, tmp_path)
     # io view: a Viewer on a recording stream without a sink
     svc, _ = io_service("view", ["--save", str(tmp_path / "x.rrd")], view.add_args)
     stream_rr = rr.RecordingStream("fuzz")
-    viewer, peers = view.Viewer(stream_rr), C.Peers()
+    viewer, peers = view.Viewer(stream_rr), Peers()
     for ch in ("frames", "poses", "points", "field", "status"):
         view.handle_message(svc, viewer, peers, ch, "k", P.encode(bases[ch]))
     assert svc.counters.get("log_errors") == 0 and viewer.frames == 1
@@ -206,7 +207,7 @@ def test_fuzz_500_malformed_messages_through_zenoh_to_a_running_mapper(dataset, 
 
     send_valid(range(6))  # init (4 frames) + one window
     st = watch.wait(lambda s: s.frame_seq == 5 and s.counters.get("windows") == 2, what="first map")
-    latest = C.query_latest(b, keys.latest, timeout=TIMEOUT)
+    latest = query_latest(b, keys.latest, timeout=TIMEOUT)
     assert latest is not None and P.decode(latest, P.FieldSnapshot).version == 2
     c0 = st.counters
 
@@ -239,7 +240,7 @@ def test_fuzz_500_malformed_messages_through_zenoh_to_a_running_mapper(dataset, 
         (500 - n_decode, 0, 0), (delta, sent)
     assert delta["dropped_frames"] == delta["errors"] == delta["windows"] == delta["frames_processed"] == 0, delta
     assert st.frame_seq == 5 and thread.is_alive()
-    assert C.query_latest(b, keys.latest, timeout=TIMEOUT) == latest  # the map did not change by a bit
+    assert query_latest(b, keys.latest, timeout=TIMEOUT) == latest  # the map did not change by a bit
     print(f"\n[fuzz/zenoh] 500 payloads ({dict(sent)}) in {secs:.2f} s; status counted bad_input "
           f"{delta['bad_input']} (decode_errors {delta['decode_errors']}, rejected_frames "
           f"{delta['rejected_frames']}), dropped 0, errors 0")
@@ -454,7 +455,7 @@ def test_restarted_tracker_process_resyncs_from_the_latest_snapshot_query(datase
     keys = P.Keys("trk")
     session = zenoh.open(peer_conf(connect=[ep_m]))
     tracked: "queue.Queue[P.Pose]" = queue.Queue()
-    sub = session.declare_subscriber(keys.poses("tracker"), lambda s: tracked.put(P.decode(C.payload_bytes(s))))
+    sub = session.declare_subscriber(keys.poses("tracker"), lambda s: tracked.put(P.decode(payload_bytes(s))))
     mapper = Svc("mapper", ["services.mapper", "--poses", "gt", "--config", str(cfg), "--threads", "1",
                             "--points-interval", "1000", "--checkpoint-every", "0"], tmp_path, ep_m, ns="trk")
     targv = ["services.tracker", "--frontend", "map", "--threads", "1", "--use-depth", "--query-timeout", "10"]
@@ -588,7 +589,7 @@ def test_same_map_in_another_process(scene):
 def test_external_pose_producer_reports_the_status_name_the_launcher_waits_for(dataset, tmp_path, zpair):
     """examples/publish_poses.py over zenoh: status on status/external (what ``fmapping up --poses
     external`` makes play wait for) and poses on poses/external (what ``--poses external`` maps from)."""
-    from fmapping.launcher import EXTERNAL_SOURCE, play_wait_for
+    from services.launcher.commands import EXTERNAL_SOURCE, play_wait_for
     from fmapping.trajectory import write_tum_trajectory
 
     publish_poses = import_example("publish_poses")
@@ -598,7 +599,7 @@ def test_external_pose_producer_reports_the_status_name_the_launcher_waits_for(d
     write_tum_trajectory(traj, np.asarray(dataset.timestamps), np.stack([dataset[i].c2w for i in range(len(dataset))]))
     watch = StatusWatch(a, keys.status(EXTERNAL_SOURCE))
     poses: "queue.Queue[P.Pose]" = queue.Queue()
-    a.declare_subscriber(keys.poses("external"), lambda s: poses.put(P.decode(C.payload_bytes(s), P.Pose)))
+    a.declare_subscriber(keys.poses("external"), lambda s: poses.put(P.decode(payload_bytes(s), P.Pose)))
     thread, errors = start_thread(publish_poses.main, ["--traj", str(traj), "--connect", ep, "--listen",
                                                        loopback_endpoint(), "--ns", "ext", "--status-interval", "0.1"])
     st = watch.wait(lambda s: s.state == "running", what="status/external")

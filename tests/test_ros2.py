@@ -12,8 +12,8 @@ import pytest
 pytest.importorskip("rosbags")
 
 from fmapping import protocol as P  # noqa: E402
-from services.ros2.core import BridgeCore, Topics  # noqa: E402
 from services.ros2 import convert as C  # noqa: E402
+from services.ros2.core import BridgeCore, Topics  # noqa: E402
 
 
 def _pose(seq: int, t: float, seed: int = 0, source: str = "tracker") -> P.Pose:
@@ -169,8 +169,8 @@ def test_bridge_service_publishes_a_pose_stamped_for_each_tracker_pose(zpair):
     import zenoh
     from service_helpers import wait_matching
 
-    from services.common import Service
     from services.ros2.__main__ import build_parser, run
+    from services.transport import Service
 
     a, b, _ = zpair
     keys = P.Keys("ros")
@@ -219,8 +219,8 @@ def test_bridge_service_turns_ros_images_into_frames(zpair):
     import zenoh
     from service_helpers import wait_matching
 
-    from services.common import Service
     from services.ros2.__main__ import build_parser, run
+    from services.transport import Service
 
     a, b, _ = zpair
     keys = P.Keys("rosin")

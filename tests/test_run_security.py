@@ -18,7 +18,7 @@ import pytest
 zenoh = pytest.importorskip("zenoh")
 
 from fmapping import protocol as P  # noqa: E402
-from fmapping.launcher import free_port  # noqa: E402
+from services.zenoh_session import free_port  # noqa: E402
 from services.credentials import ROLES, acl_policy, make_run_credentials  # noqa: E402
 
 NS = "sectest"
@@ -186,7 +186,7 @@ def test_a_running_fmapping_up_ignores_outsiders_and_roles_overstepping(scene, t
     cfg.write_text(yaml.safe_dump({"mapper": SMALL_MAPPER, "launcher": {"timeout": 240, "threads": 1,
                                                                          "view": False}}))
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "fmapping.cli", "up", "--data", str(scene), "--poses", "gt",
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--data", str(scene), "--poses", "gt",
                              "--out", str(out), "--config", str(cfg)], cwd=ROOT, env=subprocess_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     stop = threading.Event()

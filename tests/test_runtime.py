@@ -72,7 +72,7 @@ def test_service_torch_threads_auto_and_explicit():
 
     import torch
 
-    from services.common import available_cpus, set_torch_threads
+    from services.process import available_cpus, set_torch_threads
 
     assert available_cpus() == len(os.sched_getaffinity(0))
     before = torch.get_num_threads()

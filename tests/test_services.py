@@ -21,7 +21,11 @@ zenoh = pytest.importorskip("zenoh")
 from fmapping import protocol as P  # noqa: E402
 from service_helpers import (ROOT, SMALL_MAPPER, GtProducer, feed, import_example, loopback_endpoint,  # noqa: E402
                              mapper_yaml, peer_conf, small_cfg, start_thread, subprocess_env, wait_matching)
-from services import common as C  # noqa: E402
+from fmapping.geometry import orthonormalize  # noqa: E402
+from services.core_support import Counters, Inbox, ServiceCore, thin_victim, usable_camera  # noqa: E402
+from services.transport import StatusBoard, stop_kind  # noqa: E402
+from services.zenoh_session import (add_common_args, names, payload_bytes, query_latest,  # noqa: E402
+                                    resolve_network, zenoh_config)
 
 TIMEOUT = 30.0
 pytestmark = pytest.mark.usefixtures("one_thread")  # scene, dataset, zpair: conftest.py
@@ -32,7 +36,7 @@ def test_frame_pub_sub_round_trip_over_zenoh(zpair):
     a, b, _ = zpair
     keys = P.Keys("t1")
     got: "queue.Queue[bytes]" = queue.Queue()
-    sub = b.declare_subscriber(keys.frames, lambda s: got.put(C.payload_bytes(s)))
+    sub = b.declare_subscriber(keys.frames, lambda s: got.put(payload_bytes(s)))
     pub = a.declare_publisher(keys.frames)
     wait_matching(pub, timeout=TIMEOUT)
     rng = np.random.default_rng(0)
@@ -51,17 +55,17 @@ def test_queryable_answers_latest_snapshot(zpair):
     keys = P.Keys("t2")
     latest = {"data": None}
     qa = a.declare_queryable(keys.latest, lambda q: q.reply(keys.latest, latest["data"]) if latest["data"] else None)
-    assert C.query_latest(b, keys.latest, timeout=0.5) is None  # nothing published yet: no reply, no hang
+    assert query_latest(b, keys.latest, timeout=0.5) is None  # nothing published yet: no reply, no hang
     for v in (1, 2, 3):
         snap = P.PointsSnapshot(version=v, points=np.full((v, 3), v, np.float32), colors=np.zeros((v, 3), np.uint8))
         latest["data"] = P.encode(snap)
-    got = C.query_latest(b, keys.latest, timeout=TIMEOUT)
+    got = query_latest(b, keys.latest, timeout=TIMEOUT)
     assert got is not None and P.decode(got).version == 3
     qa.undeclare()
 
 
 def test_inbox_drops_oldest_and_serves_by_priority():
-    box = C.Inbox({"control": 2, "frames": 3})
+    box = Inbox({"control": 2, "frames": 3})
     for i in range(5):
         box.put("frames", i)
     box.put("control", "stop")
@@ -77,7 +81,7 @@ def test_inbox_drops_oldest_and_serves_by_priority():
 def test_counters_take_numbers_only():
     """A Status carries numeric counters: a string would make every later status fail to encode
     (the heartbeat then goes silent), so setting one is refused at once, naming the counter."""
-    c = C.Counters()
+    c = Counters()
     c.set("track_ms", 1.5)
     c.set("bootstrap_frame", np.int64(7))
     with pytest.raises(TypeError, match="scale_from"):
@@ -89,8 +93,8 @@ def test_thinned_inbox_keeps_a_backlog_spread_over_time():
     """A thinned channel (the mapper's frames) that overflows keeps its oldest and newest items
     and drops where items lie closest together: 100 frames into 8 places leave the stream
     subsampled (drop-oldest would keep 92..99)."""
-    assert C.thin_victim([1, 2, 3, 10]) == 1 and C.thin_victim([1, 5, 6, 7]) == 2 and C.thin_victim([4, 9]) == 0
-    box = C.Inbox({"control": 2, "frames": 8}, thin=("frames",))
+    assert thin_victim([1, 2, 3, 10]) == 1 and thin_victim([1, 5, 6, 7]) == 2 and thin_victim([4, 9]) == 0
+    box = Inbox({"control": 2, "frames": 8}, thin=("frames",))
     for i in range(100):
         assert box.put("frames", i) == (i < 8)
     box.put("control", "stop")
@@ -101,7 +105,7 @@ def test_thinned_inbox_keeps_a_backlog_spread_over_time():
     assert gaps.max() <= 2.5 * 99 / 7 and gaps.min() >= 0.4 * 99 / 7, kept  # even to within a factor ~2.5
     assert box.counters.get("dropped_frames") == 92
     # the worker taking items while others arrive keeps items and arrival numbers in step
-    box = C.Inbox({"frames": 4}, thin=("frames",))
+    box = Inbox({"frames": 4}, thin=("frames",))
     served = []
     for i in range(40):
         box.put("frames", i)
@@ -112,33 +116,34 @@ def test_thinned_inbox_keeps_a_backlog_spread_over_time():
     assert box.counters.get("dropped_frames") == 40 - len(served) - len(rest)
 
 
-def test_core_helpers_camera_gate_rigid_pose_names_and_stop_kind(dataset):
+def test_core_helpers_camera_gate_pose_projection_names_and_stop_kind(dataset):
     good = P.decode(P.encode(P.frame_from_dataset(dataset[0], seq=0)))
-    core = C.ServiceCore()
+    core = ServiceCore()
     assert core.frame_camera(good) == good.camera and core.camera_dict is None  # the caller fixes it
     core.camera_dict = good.camera
     other = P.Frame(seq=1, timestamp=0.0, rgb=good.rgb, camera=dict(good.camera, fx=good.camera["fx"] + 1))
     assert core.frame_camera(other) is None and core.frame_camera(good) is good.camera
     assert core.counters.snapshot() == {"rejected_frames": 1, "bad_input": 1} and "frame 1: camera" in core.last_error
     with pytest.raises(ValueError, match="distortion"):
-        C.usable_camera(dict(good.camera, dist=[0.1, 0, 0, 0]), undistorted=True)
-    assert C.usable_camera(dict(good.camera, dist=[0.1, 0, 0, 0]))["dist"] == [0.1, 0.0, 0.0, 0.0]
+        usable_camera(dict(good.camera, dist=[0.1, 0, 0, 0]), undistorted=True)
+    assert usable_camera(dict(good.camera, dist=[0.1, 0, 0, 0]))["dist"] == [0.1, 0.0, 0.0, 0.0]
     with pytest.raises(ValueError, match="unusable camera"):
-        C.usable_camera(dict(good.camera, fx=-1.0))
-    # rigid_pose: the nearest rotation (polar factor) of a perturbed one, translation kept
+        usable_camera(dict(good.camera, fx=-1.0))
+    # the poses the cores publish (fmapping.geometry.orthonormalize): the nearest rotation (polar factor)
+    # of a perturbed one, translation kept
     c2w = dataset[3].c2w
     noisy = c2w.copy()
     noisy[:3, :3] += 1e-3 * np.random.default_rng(0).standard_normal((3, 3))
     noisy[3] = [1e-9, 0, 0, 1]
-    r = C.rigid_pose(noisy)
+    r = orthonormalize(noisy)
     np.testing.assert_allclose(r[:3, :3].T @ r[:3, :3], np.eye(3), atol=1e-12)
     assert np.linalg.det(r[:3, :3]) > 0 and np.abs(r[:3, :3] - c2w[:3, :3]).max() < 3e-3
     assert r[:3, 3].tolist() == noisy[:3, 3].tolist() and r[3].tolist() == [0, 0, 0, 1]
-    np.testing.assert_allclose(C.rigid_pose(c2w), c2w, atol=1e-12)
-    assert C.names(" mapper, ,tracker ") == ["mapper", "tracker"] and C.names(None) == C.names("") == []
+    np.testing.assert_allclose(orthonormalize(c2w), c2w, atol=1e-12)
+    assert names(" mapper, ,tracker ") == ["mapper", "tracker"] and names(None) == names("") == []
     end = P.Control("stop", {"reason": "end"})
-    assert (C.stop_kind(end, ["mapper"]), C.stop_kind(end, []), C.stop_kind(P.Control("stop"), ["mapper"]),
-            C.stop_kind(P.Control("save"), ["mapper"])) == ("end", "stop", "stop", None)
+    assert (stop_kind(end, ["mapper"]), stop_kind(end, []), stop_kind(P.Control("stop"), ["mapper"]),
+            stop_kind(P.Control("save"), ["mapper"])) == ("end", "stop", "stop", None)
 
 
 def test_zenoh_config_and_yaml(tmp_path):
@@ -147,15 +152,15 @@ def test_zenoh_config_and_yaml(tmp_path):
     y = tmp_path / "z.yaml"
     y.write_text("mode: client\nconnect: [tcp/10.0.0.1:7447]\nnamespace: lab\n"
                  "options:\n  scouting/gossip/enabled: false\n")
-    args = C.add_common_args(argparse.ArgumentParser()).parse_args(["--zenoh-config", str(y), "--ns", "cli"])
-    net = C.resolve_network(args)
+    args = add_common_args(argparse.ArgumentParser()).parse_args(["--zenoh-config", str(y), "--ns", "cli"])
+    net = resolve_network(args)
     assert net["mode"] == "client" and net["connect"] == ["tcp/10.0.0.1:7447"] and net["ns"] == "cli"
     assert net["multicast"] is False and net["listen"] == []
-    conf = C.zenoh_config(net["mode"], net["listen"], net["connect"], net["multicast"], net["options"])
+    conf = zenoh_config(net["mode"], net["listen"], net["connect"], net["multicast"], net["options"])
     assert "client" in conf.get_json("mode") and conf.get_json("scouting/multicast/enabled") == "false"
     y.write_text("bogus: 1\n")
     with pytest.raises(ValueError, match="unknown keys"):
-        C.resolve_network(args)
+        resolve_network(args)
 
 
 # ---------------------------------------------------------------------------- mapper core
@@ -599,8 +604,8 @@ def test_mapper_service_publishes_snapshots_and_serves_late_joiners(dataset, tmp
     cfg = mapper_yaml(tmp_path)
     snaps: "queue.Queue[P.FieldSnapshot]" = queue.Queue()
     statuses: "queue.Queue[P.Status]" = queue.Queue()
-    sub = b.declare_subscriber(keys.field, lambda s: snaps.put(P.decode(C.payload_bytes(s))))
-    sub2 = b.declare_subscriber(keys.status("mapper"), lambda s: statuses.put(P.decode(C.payload_bytes(s))))
+    sub = b.declare_subscriber(keys.field, lambda s: snaps.put(P.decode(payload_bytes(s))))
+    sub2 = b.declare_subscriber(keys.status("mapper"), lambda s: statuses.put(P.decode(payload_bytes(s))))
     thread, errors = start_thread(mapper_main, ["--poses", "gt", "--config", str(cfg), "--out", str(tmp_path / "out"),
                                                 "--points-interval", "1000", "--no-mesh", "--status-interval", "0.2"],
                                   session=a, keys=keys)
@@ -615,7 +620,7 @@ def test_mapper_service_publishes_snapshots_and_serves_late_joiners(dataset, tmp
     # a late joiner (a third session) gets the latest snapshot by query
     late = zenoh.open(peer_conf(connect=[ep]))
     try:
-        data = C.query_latest(late, keys.latest, timeout=TIMEOUT)
+        data = query_latest(late, keys.latest, timeout=TIMEOUT)
         assert data is not None and P.decode(data, P.FieldSnapshot).version == 2
     finally:
         late.close()
@@ -660,15 +665,15 @@ def test_play_flow_control_bounds_frames_in_flight(zpair):
     ds = _ListDataset(20)
     frames: "queue.Queue[bytes]" = queue.Queue()
     controls: "queue.Queue[bytes]" = queue.Queue()
-    b.declare_subscriber(keys.frames, lambda s: frames.put(C.payload_bytes(s)))
-    b.declare_subscriber(keys.control, lambda s: controls.put(C.payload_bytes(s)))
+    b.declare_subscriber(keys.frames, lambda s: frames.put(payload_bytes(s)))
+    b.declare_subscriber(keys.control, lambda s: controls.put(payload_bytes(s)))
     gt: "queue.Queue[bytes]" = queue.Queue()
-    b.declare_subscriber(keys.poses("gt"), lambda s: gt.put(C.payload_bytes(s)))
+    b.declare_subscriber(keys.poses("gt"), lambda s: gt.put(payload_bytes(s)))
     status_pub = b.declare_publisher(keys.status("mapper"))
     thread, errors = start_thread(play_main, ["--data", "unused", "--window", "3", "--ack-from", "mapper",
                                               "--ack-timeout", "60", "--status-interval", "0.2"],
                                   session=a, keys=keys, dataset=ds)
-    board = C.StatusBoard("mapper")  # a fake mapper: heartbeats its status like a real service
+    board = StatusBoard("mapper")  # a fake mapper: heartbeats its status like a real service
     board.update(state="running")
     stop_beat = threading.Event()
 
@@ -800,7 +805,7 @@ def test_sigterm_during_a_mapping_window_stops_within_5_seconds(dataset, tmp_pat
         try:
             rc = p.wait(timeout=30)
         except subprocess.TimeoutExpired:
-            p.send_signal(signal.SIGUSR1)  # the service prints every thread's stack (services.common.run_main)
+            p.send_signal(signal.SIGUSR1)  # the service prints every thread's stack (services.process.run_main)
             time.sleep(2.0)
             raise AssertionError("mapper still running 30 s after SIGTERM; its log:\n" + log_path.read_text())
         took = time.monotonic() - t0
@@ -828,7 +833,7 @@ def test_fmapping_up_end_to_end(scene, tmp_path):
     mapper = {**SMALL_MAPPER, "init_iters_per_round": 40, "final_global_iters": 60}  # enough for a (coarse) map
     cfg.write_text(yaml.safe_dump({"mapper": mapper, "launcher": {"timeout": 240, "threads": 1}}))
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "fmapping.cli", "up", "--data", str(scene), "--poses", "gt",
+    r = subprocess.run([sys.executable, "-m", "services.cli", "up", "--data", str(scene), "--poses", "gt",
                         "--out", str(out), "--config", str(cfg)], cwd=ROOT, env=subprocess_env(), capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
@@ -876,7 +881,7 @@ def test_fmapping_up_rgb_only_with_the_mono_tracker(room320, tmp_path):
     mapper = {**SMALL_MAPPER, "init_iters_per_round": 5, "final_global_iters": 0}  # the poses are under test here
     cfg.write_text(yaml.safe_dump({"mapper": mapper, "launcher": {"timeout": 240, "threads": 1, "view": False}}))
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "fmapping.cli", "up", "--data", str(room320), "--poses", "tracker",
+    r = subprocess.run([sys.executable, "-m", "services.cli", "up", "--data", str(room320), "--poses", "tracker",
                         "--out", str(out), "--config", str(cfg)], cwd=ROOT, env=subprocess_env(), capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
@@ -907,7 +912,7 @@ def test_fmapping_demo_runs_the_system_and_reports_its_metrics(tmp_path):
     mapper = {**SMALL_MAPPER, "init_iters_per_round": 20, "final_global_iters": 20}
     cfg.write_text(yaml.safe_dump({"mapper": mapper, "launcher": {"timeout": 240, "threads": 1, "view": False}}))
     out = tmp_path / "demo"
-    r = subprocess.run([sys.executable, "-m", "fmapping.cli", "demo", "--frames", "40", "--out", str(out),
+    r = subprocess.run([sys.executable, "-m", "services.cli", "demo", "--frames", "40", "--out", str(out),
                         "--config", str(cfg)], cwd=ROOT, env=subprocess_env(), capture_output=True, text=True,
                        timeout=300)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]

@@ -17,31 +17,35 @@ import pytest
 
 pytest.importorskip("zenoh")
 
-from fmapping import launcher as L  # noqa: E402
 from fakes import FakeProc, FakeSession  # noqa: E402
 from fault_helpers import FAULT_MAPPER  # noqa: E402
 from service_helpers import ROOT, SMALL_MAPPER, subprocess_env  # noqa: E402
+
+from services.launcher import supervise  # noqa: E402
+from services.launcher import up as launcher_up  # noqa: E402
+from services.launcher.commands import tracker_state  # noqa: E402
+from services.launcher.resume import resume_args, save_run_args, start_over  # noqa: E402
 
 
 def test_supervise_restarts_crashes_with_backoff_and_a_bound(capsys):
     procs = {"play": FakeProc("play"), "mapper": FakeProc("mapper", rc=-9), "record": FakeProc("record", rc=2)}
     pending: dict = {}
-    L._supervise(procs, pending, now=100.0)
-    assert pending == {"mapper": 100.0 + L.RESTART_BACKOFF}  # bad input (2) is not retried
-    L._supervise(procs, pending, now=100.5)
+    supervise._supervise(procs, pending, now=100.0)
+    assert pending == {"mapper": 100.0 + supervise.RESTART_BACKOFF}  # bad input (2) is not retried
+    supervise._supervise(procs, pending, now=100.5)
     assert procs["mapper"].restarts == 0
-    L._supervise(procs, pending, now=101.0)
+    supervise._supervise(procs, pending, now=101.0)
     assert procs["mapper"].restarts == 1 and not pending
-    for k in range(1, L.MAX_RESTARTS):
+    for k in range(1, supervise.MAX_RESTARTS):
         procs["mapper"]._rc = 1
-        L._supervise(procs, pending, now=200.0 * k)
-        assert pending["mapper"] == 200.0 * k + L.RESTART_BACKOFF * 2 ** k
-        L._supervise(procs, pending, now=pending["mapper"])
+        supervise._supervise(procs, pending, now=200.0 * k)
+        assert pending["mapper"] == 200.0 * k + supervise.RESTART_BACKOFF * 2 ** k
+        supervise._supervise(procs, pending, now=pending["mapper"])
     procs["mapper"]._rc = 1
-    L._supervise(procs, pending, now=1e6)
-    assert not pending and procs["mapper"].restarts == L.MAX_RESTARTS  # the bound: it stays down
+    supervise._supervise(procs, pending, now=1e6)
+    assert not pending and procs["mapper"].restarts == supervise.MAX_RESTARTS  # the bound: it stays down
     procs = {"play": FakeProc("play", rc=0), "tracker": FakeProc("tracker", rc=-9)}
-    L._supervise(procs, pending, now=0.0)
+    supervise._supervise(procs, pending, now=0.0)
     assert not pending  # play has finished: nobody would send the end-of-sequence stop again
     assert "restarting it in 1 s (1/3)" in capsys.readouterr().err
 
@@ -198,10 +202,10 @@ def test_fmapping_up_resume_continues_a_killed_run(fault_scene, tmp_path):
             launcher.kill()
     assert (out / "checkpoint.pt").is_file() and (out / "tracker" / "state.npz").is_file()
     killed_at = int(torch_free_checkpoint_seq(out))
-    res = subprocess.run([sys.executable, "-m", "fmapping.cli", "up", "--resume", str(out)], cwd=ROOT,
+    res = subprocess.run([sys.executable, "-m", "services.cli", "up", "--resume", str(out)], cwd=ROOT,
                          env=subprocess_env(), capture_output=True, text=True, timeout=400)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    from fmapping.launcher import demo_metrics
+    from services.launcher.demo import demo_metrics
 
     metrics = demo_metrics(out, scene)
     up = json.loads((out / "up.json").read_text())
@@ -249,7 +253,7 @@ def test_fmapping_up_resume_refuses_a_folder_without_a_resumable_run(tmp_path, c
         (out / "run.json").write_text(json.dumps({"data": str(tmp_path / "scene"), "poses": "gt", "out": str(out)}))
     if case == "completed":
         (out / "up.json").write_text(json.dumps({"seconds": 3.0, "outputs": {}}))
-    res = subprocess.run([sys.executable, "-m", "fmapping.cli", "up", "--resume", str(out)], cwd=ROOT,
+    res = subprocess.run([sys.executable, "-m", "services.cli", "up", "--resume", str(out)], cwd=ROOT,
                          env=subprocess_env(), capture_output=True, text=True, timeout=120)
     want = {"empty": "no run of fmapping up to resume there", "no-checkpoint": "no checkpoint.pt",
             "completed": "the run there completed"}[case]
@@ -271,14 +275,14 @@ def test_a_router_port_taken_before_it_binds_is_replaced(scene, tmp_path, monkey
     squatter.listen()
     taken = squatter.getsockname()[1]
     ports = iter([taken])
-    real = L.free_port
-    monkeypatch.setattr(L, "free_port", lambda host="127.0.0.1": next(ports, None) or real(host))
+    real = launcher_up.free_port
+    monkeypatch.setattr(launcher_up, "free_port", lambda host="127.0.0.1": next(ports, None) or real(host))
     cfg = tmp_path / "up.yaml"
     cfg.write_text(yaml.safe_dump({"mapper": SMALL_MAPPER, "launcher": {"timeout": 240, "threads": 1,
                                                                          "view": False}}))
     out = tmp_path / "out"
     try:
-        rc = L.run_up(argparse.Namespace(data=str(scene), poses="gt", out=str(out), fps=0.0, config=str(cfg)))
+        rc = launcher_up.run_up(argparse.Namespace(data=str(scene), poses="gt", out=str(out), fps=0.0, config=str(cfg)))
     finally:
         squatter.close()
     err = capsys.readouterr()
@@ -425,19 +429,19 @@ def test_a_run_keeps_its_arguments_for_resume_and_a_new_run_starts_over(tmp_path
     cfg.write_text("launcher: {threads: 1}\n")
     args = argparse.Namespace(command="up", data="/data/room", poses="tracker", out=str(out), fps=0.0,
                               config=str(cfg), bbox=[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]], insecure=False, resume=None)
-    L.save_run_args(args, out)
+    save_run_args(args, out)
     cfg.unlink()  # the run no longer depends on the user's file
     (out / "checkpoint.pt").write_bytes(b"-")
-    again = L.resume_args(out)
+    again = resume_args(out)
     assert again.resume is True and again.out == str(out) and again.data == "/data/room" and again.bbox == args.bbox
     assert Path(again.config).read_text() == "launcher: {threads: 1}\n" and Path(again.config).parent == out / "config"
-    L.tracker_state(out).parent.mkdir()
-    L.tracker_state(out).write_bytes(b"-")
-    L.start_over(out)
-    assert not (out / "checkpoint.pt").exists() and not L.tracker_state(out).exists()
+    tracker_state(out).parent.mkdir()
+    tracker_state(out).write_bytes(b"-")
+    start_over(out)
+    assert not (out / "checkpoint.pt").exists() and not tracker_state(out).exists()
     assert "removed the checkpoint of an earlier unfinished run" in capsys.readouterr().out
     with pytest.raises(ValueError, match="no checkpoint.pt"):
-        L.resume_args(out)
+        resume_args(out)
 
 
 def test_play_sends_a_restarted_consumer_the_frames_it_missed_and_starts_after_a_resumed_mapper(scene):
@@ -448,14 +452,14 @@ def test_play_sends_a_restarted_consumer_the_frames_it_missed_and_starts_after_a
 
     from fmapping import protocol as P
     from fmapping.datasets import open_dataset
-    from services import common as C
     from services.io import play
+    from services.transport import Service
 
     def player(*extra):
         args = play.add_args(argparse.ArgumentParser()).parse_args(
             ["--data", str(scene), "--ack-from", "", "--wait-for", "", "--no-end-stop", *extra])
         session = FakeSession()
-        svc = C.Service("play", args, session=session, keys=P.Keys("t"), install_signals=False)
+        svc = Service("play", args, session=session, keys=P.Keys("t"), install_signals=False)
         return play.Player(svc, open_dataset(scene), args), session
 
     def frames(session) -> list:

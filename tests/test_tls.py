@@ -28,7 +28,7 @@ pytest.importorskip("cryptography")
 from cryptography import x509  # noqa: E402
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID  # noqa: E402
 
-from fmapping.launcher import free_port  # noqa: E402
+from services.zenoh_session import free_port  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DEPLOY = REPO / "deploy" / "zenoh"

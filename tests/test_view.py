@@ -143,7 +143,7 @@ def _view_args(argv):
 
 
 def test_live_view_serves_the_web_viewer_on_the_given_port_and_saves_too(tmp_path, capsys):
-    from fmapping.launcher import free_port
+    from services.zenoh_session import free_port
 
     web, grpc = free_port(), free_port()
     args = _view_args(["--serve", "--save", str(tmp_path / "run.rrd"), "--web-port", str(web),
@@ -166,8 +166,8 @@ def test_live_view_serves_the_web_viewer_on_the_given_port_and_saves_too(tmp_pat
 
 
 def test_fmapping_up_view_options(tmp_path, monkeypatch):
-    from fmapping.cli import build_parser
-    from fmapping.launcher import live_url, view_argv, view_mode
+    from services.cli import build_parser
+    from services.launcher.commands import live_url, view_argv, view_mode
 
     a = build_parser().parse_args(["up", "--view", "live", "--view-port", "9191", "--grpc-port", "9877"])
     live = view_argv(tmp_path, "live", a, uses_depth=False)

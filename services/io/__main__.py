@@ -35,6 +35,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    from services.common import exit_process
+    from services.process import exit_process
 
     exit_process(main())  # outputs are written: skip the slow interpreter teardown

@@ -41,7 +41,9 @@ import numpy as np
 
 from fmapping import protocol as P
 from fmapping.cli import add_source_args, source_options
-from services.common import EXIT_STALLED, Peers, Service, add_common_args, names, service_parser
+from services.process import EXIT_STALLED, service_parser
+from services.transport import Peers, Service
+from services.zenoh_session import add_common_args, names
 
 
 def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -363,10 +365,15 @@ def open_source(args):
                         **source_options(args))
 
 
-def main(argv=None, session=None, keys=None, dataset=None) -> int:
-    from services.common import setup_logging
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``python -m services.io play``."""
+    return add_args(service_parser("services.io play", __doc__))
 
-    args = add_args(service_parser("services.io play", __doc__)).parse_args(argv)
+
+def main(argv=None, session=None, keys=None, dataset=None) -> int:
+    from services.process import setup_logging
+
+    args = build_parser().parse_args(argv)
     setup_logging(args.log_level, "play")
     if dataset is None:
         dataset = open_source(args)

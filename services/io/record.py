@@ -2,12 +2,12 @@
 
 Keeps every Pose it hears (per source, latest per frame number) and the newest
 PointsSnapshot. It does not trust a peer blindly: a pose with a negative frame number or one
-far beyond the frames played (``services.common.MAX_SEQ_AHEAD``) is refused at once, and poses
+far beyond the frames played (``services.core_support.MAX_SEQ_AHEAD``) is refused at once, and poses
 of frames that were never played (beyond the last frame of the end-of-sequence stop; without
 that stop, as when the run is interrupted, beyond the newest frame play's status reported plus
 ``STATUS_MARGIN``, since a status is up to half a second old) are left out of the files
 (``unplayed_poses``); a points snapshot
-must follow the last one plausibly (``services.common.snapshot_problem``). On the end-of-sequence stop it waits (``--final-timeout``) until the
+must follow the last one plausibly (``services.core_support.snapshot_problem``). On the end-of-sequence stop it waits (``--final-timeout``) until the
 services in ``--wait-done`` report state ``done`` (so the mapper's final map is in),
 then writes and exits; on any other stop, SIGINT or SIGTERM it writes what it has.
 
@@ -25,9 +25,10 @@ import numpy as np
 from fmapping import protocol as P
 from fmapping.ply import write_ply
 from fmapping.trajectory import write_tum_trajectory  # imports torch: at start-up, not at the end
-from services.common import (FINAL_TIMEOUT_HELP, MIB, FirstMessage, Peers, Service, add_common_args,
-                             add_first_message_arg, names, seq_problem, serve_until_end, service_parser, setup_logging,
-                             snapshot_problem, stop_kind, write_json_atomic)
+from services.core_support import MIB, seq_problem, snapshot_problem
+from services.process import FirstMessage, add_first_message_arg, service_parser, setup_logging
+from services.transport import FINAL_TIMEOUT_HELP, Peers, Service, serve_until_end, stop_kind, write_json_atomic
+from services.zenoh_session import add_common_args, names
 
 
 def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -205,10 +206,15 @@ def run(svc: Service, args) -> int:
     return code
 
 
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``python -m services.io record``."""
+    return add_args(service_parser("services.io record", __doc__))
+
+
 def main(argv=None, session=None, keys=None) -> int:
-    args = add_args(service_parser("services.io record", __doc__)).parse_args(argv)
+    args = build_parser().parse_args(argv)
     setup_logging(args.log_level, "record")
-    # bounded in items and bytes: ~102 MiB at most (the stop queue "end" comes first, see services.common)
+    # bounded in items and bytes: ~102 MiB at most (the stop queue "end" comes first, see services.transport)
     with Service("record", args, capacities={"end": 8, "control": 64, "status": 256, "poses": 100_000, "points": 2},
                  max_bytes={"end": MIB, "control": MIB, "status": 4 * MIB, "poses": 32 * MIB, "points": 64 * MIB},
                  session=session, keys=keys) as svc:

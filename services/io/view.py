@@ -39,8 +39,9 @@ from typing import Callable, Optional
 import numpy as np
 
 from fmapping import protocol as P
-from services.common import (FINAL_TIMEOUT_HELP, Peers, Service, add_common_args, names, serve_until_end,
-                             service_parser, setup_logging, stop_kind)
+from services.process import service_parser, setup_logging
+from services.transport import FINAL_TIMEOUT_HELP, Peers, Service, serve_until_end, stop_kind
+from services.zenoh_session import add_common_args, names
 
 SOURCE_COLORS = {"tracker": (230, 80, 40), "gt": (40, 200, 80), "external": (60, 120, 240)}
 KEYFRAME_COLOR = (250, 200, 40)
@@ -633,8 +634,13 @@ def run(svc: Service, args, rec) -> int:
     return 0
 
 
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``python -m services.io view``."""
+    return add_args(service_parser("services.io view", __doc__))
+
+
 def main(argv=None, session=None, keys=None) -> int:
-    args = add_args(service_parser("services.io view", __doc__)).parse_args(argv)
+    args = build_parser().parse_args(argv)
     setup_logging(args.log_level, "view")
     rec = open_recording(args)
     svc = Service("view", args, capacities={"control": 64, "status": 256, "poses": 10_000, "field": 2,

@@ -18,9 +18,12 @@ import time
 
 from fmapping import protocol as P
 from fmapping.cancel import Cancelled
-from services.common import (MIB, FirstMessage, Service, add_common_args, add_first_message_arg, available_cpus,
-                             run_main, service_parser, set_torch_threads, setup_logging)
+from services.core_support import MIB
 from services.mapper.core import POSE_SOURCES, MapperCore, MapperServiceOptions, load_mapper_config
+from services.process import (FirstMessage, add_first_message_arg, available_cpus, run_main, service_parser,
+                              set_torch_threads, setup_logging)
+from services.transport import Service
+from services.zenoh_session import add_common_args
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -58,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
     return add_common_args(p)
 
 
-# inbox bounds per channel, items and bytes (the stop queue "end" comes first, see services.common):
+# inbox bounds per channel, items and bytes (the stop queue "end" comes first, see services.transport):
 # at most ~266 MiB queued, whatever arrives; 32 frames of 1280x720 RGB-D are ~205 MB
 CAPACITIES = {"end": 8, "control": 64, "status": 16, "poses": 8192, "frames": 32}
 MAX_BYTES = {"end": 1 * MIB, "control": 1 * MIB, "status": 1 * MIB, "poses": 8 * MIB, "frames": 256 * MIB}

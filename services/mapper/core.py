@@ -42,8 +42,9 @@ import numpy as np
 
 from fmapping import protocol as P
 from fmapping.fileio import atomic_open, write_json
+from fmapping.geometry import orthonormalize
 from fmapping.map_outputs import map_mesh, map_points
-from services.common import ServiceCore, rigid_pose
+from services.core_support import ServiceCore
 
 log = logging.getLogger("fmapping.mapper")
 
@@ -431,7 +432,7 @@ class MapperCore(ServiceCore):
         snap = P.FieldSnapshot(version=self.version, kind=cfg.field.kind, config=config,
                                aabb=m.aabb.detach().cpu().numpy().astype(np.float64), arrays=arrays,
                                frame_seq=self.seq_of_fid[-1] if self.seq_of_fid else -1, timestamp=time.time(),
-                               frame_c2w=rigid_pose(poses[last_fid]) if last_fid in poses else None)
+                               frame_c2w=orthonormalize(poses[last_fid]) if last_fid in poses else None)
         data = P.encode(snap)
         self.latest_field, self.latest_field_bytes = snap, data
         self.counters.set("field_version", self.version)
@@ -446,7 +447,7 @@ class MapperCore(ServiceCore):
         for fid in m.window_ids():
             if 0 <= fid < len(self.seq_of_fid) and fid in poses:
                 out.append(P.Pose(seq=self.seq_of_fid[fid], timestamp=float(stamps.get(fid, 0.0)),
-                                  c2w=rigid_pose(poses[fid]), source="mapper"))
+                                  c2w=orthonormalize(poses[fid]), source="mapper"))
         return out
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray, list[int]]:

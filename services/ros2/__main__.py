@@ -17,7 +17,9 @@ from __future__ import annotations
 import argparse
 import os
 
-from services.common import Service, add_common_args, run_main, service_parser, setup_logging
+from services.process import run_main, service_parser, setup_logging
+from services.transport import Service
+from services.zenoh_session import add_common_args
 
 
 def _env_domain() -> int:
@@ -29,8 +31,8 @@ def _env_domain() -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from services.ros2.core import Topics
     from services.ros2.convert import CAMERA_FRAME, DISTROS, WORLD_FRAME
+    from services.ros2.core import Topics
 
     t = Topics()
     p = service_parser("services.ros2", __doc__)
@@ -64,8 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def make_core(args, svc: Service):
-    from services.ros2.core import BridgeCore, Topics
     from services.ros2.convert import TopicKeys, default_distro
+    from services.ros2.core import BridgeCore, Topics
 
     ros = TopicKeys(args.key_style, args.ros_prefix, args.domain, default_distro(args.distro))
     topics = Topics(args.pose_topic, args.path_topic, args.points_topic, args.image_topic, args.info_topic)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Callable, NamedTuple, Optional
 
 from fmapping import protocol as P
-from services.common import Counters
+from services.core_support import Counters
 from services.ros2 import convert as C
 
 MAX_PATH_POSES = 100_000  # a Path message of 100k poses is ~6 MB: beyond that only the newest are sent

@@ -11,9 +11,12 @@ import argparse
 import logging
 
 from fmapping.runtime import limit_blas_threads, retain_freed_memory
-from services.common import (MIB, FirstMessage, Service, add_common_args, add_first_message_arg, query_latest,
-                             run_main, service_parser, set_torch_threads, setup_logging)
+from services.core_support import MIB
+from services.process import (FirstMessage, add_first_message_arg, run_main, service_parser,
+                              set_torch_threads, setup_logging)
 from services.tracker.core import TrackerCore, TrackerServiceOptions, load_tracker_config
+from services.transport import Service
+from services.zenoh_session import add_common_args, query_latest
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -35,7 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
     return add_common_args(p)
 
 
-# inbox bounds per channel, items and bytes (the stop queue "end" comes first, see services.common):
+# inbox bounds per channel, items and bytes (the stop queue "end" comes first, see services.transport):
 # at most ~426 MiB queued; the field channel holds one snapshot of the largest size the protocol allows
 CAPACITIES = {"end": 8, "control": 64, "field": 2, "poses": 8192, "frames": 64}
 MAX_BYTES = {"end": 1 * MIB, "control": 1 * MIB, "field": 160 * MIB, "poses": 8 * MIB, "frames": 256 * MIB}

@@ -60,7 +60,8 @@ import numpy as np
 
 from fmapping import protocol as P
 from fmapping.fileio import atomic_open
-from services.common import ServiceCore, rigid_pose, snapshot_problem, usable_camera
+from fmapping.geometry import orthonormalize
+from services.core_support import ServiceCore, snapshot_problem, usable_camera
 
 log = logging.getLogger("fmapping.tracker")
 
@@ -342,7 +343,7 @@ class TrackerCore(ServiceCore):
         own = self.own_poses.get(f.seq)
         if own is None:
             return [self._skip(f.seq, f.timestamp)]
-        return [("poses", P.Pose(seq=f.seq, timestamp=own.timestamp, c2w=rigid_pose(own.c2w), source="tracker",
+        return [("poses", P.Pose(seq=f.seq, timestamp=own.timestamp, c2w=orthonormalize(own.c2w), source="tracker",
                                  quality=own.quality))]
 
     def _resume_mono(self, seq: int, f: P.Frame) -> list[Output]:
@@ -441,7 +442,7 @@ class TrackerCore(ServiceCore):
                 if was is not None:
                     self.own_poses[u.index] = was._replace(c2w=np.array(u.c2w))
                 self.counters.inc("republished")
-                out.append(("poses", P.Pose(seq=u.index, timestamp=u.timestamp, c2w=rigid_pose(u.c2w),
+                out.append(("poses", P.Pose(seq=u.index, timestamp=u.timestamp, c2w=orthonormalize(u.c2w),
                                             source="tracker", quality=u.quality)))
             else:
                 if u.quality > 0:
@@ -566,7 +567,8 @@ class TrackerCore(ServiceCore):
             for s in range(self.last_seq + 1, seq):
                 out.append(self._skip(s))
         self.last_seq = max(self.last_seq, seq)
-        out.append(("poses", P.Pose(seq=seq, timestamp=stamp, c2w=rigid_pose(c2w), source="tracker", quality=quality)))
+        out.append(("poses", P.Pose(seq=seq, timestamp=stamp, c2w=orthonormalize(c2w), source="tracker",
+                                    quality=quality)))
         return out
 
     def _skip(self, seq: int, stamp: float = 0.0) -> Output:
