@@ -37,7 +37,8 @@ CAMERA_HELP = ("intrinsics fx,fy,cx,cy[,k1,k2,p1,p2[,k3]] or a calib.txt / camer
 
 
 def _add_data_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", required=True, help=DATA_HELP + "; camera:N (a live webcam) only with fmapping up / io play")
+    p.add_argument("--data", required=True,
+                   help=DATA_HELP + "; camera:N (a live webcam) only with fmapping up / io play")
     p.add_argument("--camera", default=None, help=CAMERA_HELP)
     p.add_argument("--max-frames", type=int, default=None, help="use only the first N frames (default: all)")
     add_source_args(p)

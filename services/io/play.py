@@ -58,10 +58,12 @@ def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     add_source_args(p, ("--data-fps",))
     p.add_argument("--window", type=int, default=4, help="frames in flight beyond the slowest acknowledgement")
     p.add_argument("--ack-from", default="mapper", help="comma-separated services whose acknowledgements pace playback")
-    p.add_argument("--wait-for", default=None, help="services that must be up before the first frame (default: --ack-from)")
+    p.add_argument("--wait-for", default=None,
+                   help="services that must be up before the first frame (default: --ack-from)")
     p.add_argument("--start-timeout", type=float, default=60.0,
                    help="seconds to wait for the services of --wait-for; then playback starts anyway")
-    p.add_argument("--ack-timeout", type=float, default=15.0, help="seconds without a status after which a consumer no longer paces playback")
+    p.add_argument("--ack-timeout", type=float, default=15.0,
+                   help="seconds without a status after which a consumer no longer paces playback")
     p.add_argument("--stall-timeout", type=float, default=600.0,
                    help="seconds a live consumer's acknowledgement may stay put while frames wait for it; then "
                         "playback ends with an error (exit code 3) (0 = wait forever)")

@@ -7,7 +7,8 @@ of frames that were never played (beyond the last frame of the end-of-sequence s
 that stop, as when the run is interrupted, beyond the newest frame play's status reported plus
 ``STATUS_MARGIN``, since a status is up to half a second old) are left out of the files
 (``unplayed_poses``); a points snapshot
-must follow the last one plausibly (``services.core_support.snapshot_problem``). On the end-of-sequence stop it waits (``--final-timeout``) until the
+must follow the last one plausibly (``services.core_support.snapshot_problem``). On the end-of-sequence stop
+it waits (``--final-timeout``) until the
 services in ``--wait-done`` report state ``done`` (so the mapper's final map is in),
 then writes and exits; on any other stop, SIGINT or SIGTERM it writes what it has.
 
@@ -33,8 +34,10 @@ from services.zenoh_session import add_common_args, names
 
 def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--source", default="tracker", help="pose source written as traj.txt (tracker | gt | external | ...)")
-    p.add_argument("--wait-done", default="mapper", help="services whose 'done' status ends the recording at the end of a sequence")
+    p.add_argument("--source", default="tracker",
+                   help="pose source written as traj.txt (tracker | gt | external | ...)")
+    p.add_argument("--wait-done", default="mapper",
+                   help="services whose 'done' status ends the recording at the end of a sequence")
     p.add_argument("--final-timeout", type=float, default=120.0, help=FINAL_TIMEOUT_HELP)
     p.add_argument("--max-poses", type=int, default=1_000_000, help="per source")
     p.add_argument("--append", action="store_true",

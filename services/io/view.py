@@ -56,7 +56,8 @@ def add_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--grpc-port", type=int, default=9876, help="rerun gRPC port when serving (default: %(default)s)")
     p.add_argument("--web-port", type=int, default=9090, help="web viewer port when serving (default: %(default)s)")
     p.add_argument("--open-browser", action="store_true", help="open the web viewer in a browser")
-    p.add_argument("--primary", default="auto", help="pose source that carries the camera image (auto: tracker > external > gt)")
+    p.add_argument("--primary", default="auto",
+                   help="pose source that carries the camera image (auto: tracker > external > gt)")
     p.add_argument("--image-every", type=int, default=1, help="log every n-th RGB image (0 = none)")
     p.add_argument("--depth-every", type=int, default=0,
                    help="log every n-th depth image of the frames (default 0 = none: only runs that use depth "
@@ -256,7 +257,8 @@ class Viewer:
     PRIORITY = ("tracker", "external", "gt")
 
     def __init__(self, rec, primary: str = "auto", image_every: int = 1, depth_every: int = 0, jpeg_quality: int = 85,
-                 render_every: float = 2.0, render_width: int = 160, mesh_every: float = 10.0, mesh_resolution: int = 64,
+                 render_every: float = 2.0, render_width: int = 160, mesh_every: float = 10.0,
+                 mesh_resolution: int = 64,
                  background: bool = False, clock: Callable[[], float] = time.monotonic,
                  on_error: Optional[Callable[[BaseException], None]] = None, torch_threads: int = 0):
         """``render_every`` / ``mesh_every``: seconds (of ``clock``) between renders / live meshes of
@@ -303,12 +305,14 @@ class Viewer:
         self.rec.set_time("frame", sequence=f.seq)
         if f.camera != self._camera:
             c = f.camera
-            self.rec.log("world/camera/image", rr.Pinhole(focal_length=[c["fx"], c["fy"]], principal_point=[c["cx"], c["cy"]],
-                                                          resolution=[c["width"], c["height"]]), static=True)
+            pinhole = rr.Pinhole(focal_length=[c["fx"], c["fy"]], principal_point=[c["cx"], c["cy"]],
+                                 resolution=[c["width"], c["height"]])
+            self.rec.log("world/camera/image", pinhole, static=True)
             self._camera = f.camera
         if self.image_every and self.frames % self.image_every == 0:
             img = rr.Image(f.rgb)
-            self.rec.log("world/camera/image", img.compress(jpeg_quality=self.jpeg_quality) if self.jpeg_quality else img)
+            self.rec.log("world/camera/image",
+                         img.compress(jpeg_quality=self.jpeg_quality) if self.jpeg_quality else img)
         if self.logs_depth(f):
             self.rec.log("world/camera/image/depth", rr.DepthImage(f.depth, meter=1.0))
         self.frames += 1

@@ -35,7 +35,8 @@ def run_demo(args) -> int:
         print(f"trajectory ({poses} poses, {t['frames']} frames): ATE {t['ate_se3_cm']:.2f} cm (SE3), "
               f"{t['ate_sim3_cm']:.2f} cm (Sim3)")
     if "completion_ratio" in r:
-        print(f"reconstruction vs visible GT: accuracy {r['accuracy_cm']:.2f} cm, completion {r['completion_cm']:.2f} cm, "
+        print(f"reconstruction vs visible GT: accuracy {r['accuracy_cm']:.2f} cm, "
+              f"completion {r['completion_cm']:.2f} cm, "
               f"completion ratio (5 cm) {r['completion_ratio']:.1f} %")
     if "completion_ratio" in r3:
         print(f"after the trajectory's Sim3: accuracy {r3['accuracy_cm']:.2f} cm, completion "

@@ -32,7 +32,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", default=None, help="YAML overrides of the mapper config (fmapping.mapping.MapperConfig)")
     p.add_argument("--field", default=None, choices=["cp", "vm", "mlp", "grid"],
                    help="field type (default: the config's field.kind, cp)")
-    p.add_argument("--out", default=None, help="output folder for map.ply, mesh.ply, traj.txt, stats.json, checkpoint.pt")
+    p.add_argument("--out", default=None,
+                   help="output folder for map.ply, mesh.ply, traj.txt, stats.json, checkpoint.pt")
     p.add_argument("--checkpoint", default=None, help="checkpoint file (default OUT/checkpoint.pt)")
     p.add_argument("--checkpoint-every", type=int, default=1, help="windows between checkpoints (0 = never)")
     p.add_argument("--no-resume", action="store_true", help="ignore an existing checkpoint")

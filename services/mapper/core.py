@@ -16,11 +16,12 @@ trusted, as by ``fmapping map`` and ``fmapping slam`` (``optimize_init_poses`` o
 for a frame already integrated replaces its pose (``refined_poses``; the mono tracker sends the
 poses its bundle adjustment moved). Before the map is initialised a frame may enter
 without a pose when ``unposed_init`` is on (the mapper then guesses and optimises its init
-poses, the first ``anchor_frames`` fixed by the anchor source): that is for the tracker's ``map`` front end, which cannot track before there is a
-map; the default ``mono`` tracker poses every frame itself. A frame waits for its pose;
-when more than ``max_pending`` frames wait, the oldest is dropped (``frames_without_pose``), and so is a frame whose pose has not come
-within ``pose_timeout`` seconds (a dead or restarted producer). The acknowledgement (``ack``) is the
-newest frame number consumed (integrated or dropped): the player's flow control waits on it.
+poses, the first ``anchor_frames`` fixed by the anchor source): that is for the tracker's ``map`` front end,
+which cannot track before there is a map; the default ``mono`` tracker poses every frame itself. A frame
+waits for its pose; when more than ``max_pending`` frames wait, the oldest is dropped
+(``frames_without_pose``), and so is a frame whose pose has not come within ``pose_timeout`` seconds (a
+dead or restarted producer). The acknowledgement (``ack``) is the newest frame number consumed
+(integrated or dropped): the player's flow control waits on it.
 
 Bad input (undecodable payload, a frame whose size or intrinsics differ from the first
 frame's) is counted and never changes the state. The state is checkpointed atomically
@@ -456,7 +457,8 @@ class MapperCore(ServiceCore):
             return np.zeros(0), np.zeros((0, 4, 4)), []
         poses, stamps = self.mapper.frame_poses(), self.mapper.frame_timestamps()
         fids = sorted(poses)
-        return (np.array([stamps[i] for i in fids]), np.stack([poses[i] for i in fids]) if fids else np.zeros((0, 4, 4)),
+        c2w = np.stack([poses[i] for i in fids]) if fids else np.zeros((0, 4, 4))
+        return (np.array([stamps[i] for i in fids]), c2w,
                 [self.seq_of_fid[i] for i in fids if i < len(self.seq_of_fid)])
 
     def points_snapshot(self, max_points: int) -> Optional[P.PointsSnapshot]:

@@ -21,7 +21,8 @@ from services.zenoh_session import add_common_args, query_latest
 
 def build_parser() -> argparse.ArgumentParser:
     p = service_parser("services.tracker", __doc__)
-    p.add_argument("--config", default=None, help="YAML overrides of the tracker config (fmapping.tracking TrackerConfig)")
+    p.add_argument("--config", default=None,
+                   help="YAML overrides of the tracker config (fmapping.tracking TrackerConfig)")
     p.add_argument("--use-depth", action="store_true", help="reference depth from the sensor when frames carry it")
     p.add_argument("--max-buffer", type=int, default=64, help="frames waiting for a map")
     p.add_argument("--frontend", default="mono", choices=["mono", "map"],

@@ -88,7 +88,8 @@ class TrackerServiceOptions:
     # same world frame and scale (:meth:`MonoFrontend.resume`) instead of a new bootstrap (None: not kept)
     state_path: Optional[str] = None
     resume_tries: int = 5  # frames a restarted tracker tries to re-localise before it bootstraps anew
-    resume_keyframes: int = 5  # newest keyframes kept (the nearest in frame number to the first new frame is tried first)
+    # newest keyframes kept (the nearest in frame number to the first new frame is tried first)
+    resume_keyframes: int = 5
 
     def validate(self) -> "TrackerServiceOptions":
         if self.frontend not in ("mono", "map"):
@@ -372,7 +373,8 @@ class TrackerCore(ServiceCore):
         """Are there saved keyframes to re-localise against, of the frames' size? (A misfit is dropped.)"""
         st = self.resume_state
         if st is not None and st[0]["gray"].shape != (self.camera.height, self.camera.width):
-            self.last_error = f"the saved keyframes' images are {st[0]['gray'].shape}, not the frames' size: not resuming"
+            self.last_error = (f"the saved keyframes' images are {st[0]['gray'].shape}, not the frames' size: "
+                               "not resuming")
             self.resume_state = st = None
         return st is not None
 
