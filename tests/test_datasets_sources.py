@@ -411,7 +411,7 @@ def test_play_streams_a_live_camera_to_its_end(tmp_path):
 def _up_play_argv(monkeypatch, argv):
     """The command line `fmapping up ARGV` gives io play (after `services.io play`), no process started;
     None when up refused the input."""
-    from fmapping.cli import main
+    from services.cli import main
 
     started = fake_up(monkeypatch)
     rc = main(["up", "--poses", "gt", "--view", "save", "--insecure"] + argv)
