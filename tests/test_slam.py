@@ -36,6 +36,7 @@ def _args(data, out, cfg, **kw):
 
 def test_slam_rgb_only_end_to_end(scene, tmp_path, monkeypatch):
     import fmapping.slam as slam
+    import fmapping.slam.job as slam_job  # the module that calls write_map_outputs
 
     calls = []
 
@@ -43,7 +44,7 @@ def test_slam_rgb_only_end_to_end(scene, tmp_path, monkeypatch):
         calls.append((mapper, poses, kw))
         return {"points": 0, "mesh_vertices": 0, "mesh_faces": 0, "seconds": 0.0}
 
-    monkeypatch.setattr(slam, "write_map_outputs", fake_writer)
+    monkeypatch.setattr(slam_job, "write_map_outputs", fake_writer)
     root, cfg = scene
     stats = slam.run_slam(_args(root, tmp_path / "out", cfg, export=True))
     s = stats["summary"]
@@ -122,12 +123,13 @@ def test_slam_stopped_on_request_writes_the_frames_it_got_to(scene, tmp_path, mo
     """A stop request once frame 25 has been read: the run ends before frame 26 without the closing
     optimisation, and writes those 26 poses (tracked as well as in the full run) and the map so far."""
     import fmapping.slam as slam
+    import fmapping.slam.job as slam_job  # the module that calls open_job_dataset and write_map_outputs
 
     watched = []
-    real_open = slam.open_job_dataset
-    monkeypatch.setattr(slam, "open_job_dataset", lambda a: watched.append(_Watched(real_open(a))) or watched[-1])
+    real_open = slam_job.open_job_dataset
+    monkeypatch.setattr(slam_job, "open_job_dataset", lambda a: watched.append(_Watched(real_open(a))) or watched[-1])
     exported = []
-    monkeypatch.setattr(slam, "write_map_outputs", lambda mapper, poses, *a, **kw: exported.append(poses) or
+    monkeypatch.setattr(slam_job, "write_map_outputs", lambda mapper, poses, *a, **kw: exported.append(poses) or
                         {"points": 0, "mesh_vertices": 0, "mesh_faces": 0, "seconds": 0.0})
     root, cfg = scene
     out = tmp_path / "stopped"

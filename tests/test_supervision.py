@@ -345,7 +345,7 @@ def test_a_restarted_mono_tracker_relocalises_against_its_saved_keyframe(room320
     first = TrackerCore(opts=TrackerServiceOptions(state_path=str(state)))
     _feed_frames(first, ds, range(cut))
     assert state.is_file() and first.counters.get("states_saved") >= 1
-    from services.tracker.core import load_resume_state
+    from services.tracker.resume_state import load_resume_state
 
     kept = load_resume_state(state)
     saved = kept[-1]["index"]  # the newest: the one nearest to the next frame

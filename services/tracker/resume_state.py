@@ -1,0 +1,58 @@
+"""The mono tracker's saved keyframes (``TrackerServiceOptions.state_path``, ``--state``): written after
+each keyframe, read by a restarted tracker to re-localise against them (:meth:`MonoFrontend.resume`).
+"""
+from __future__ import annotations
+
+import logging
+from typing import Optional
+
+import numpy as np
+
+from fmapping.fileio import atomic_open
+
+log = logging.getLogger("fmapping.tracker")
+
+
+RESUME_KEYS = {"index": 0, "gray": 2, "c2w": 2, "world": 2, "uv": 2, "prev_index": 0, "prev_c2w": 2}  # key: ndim
+
+
+def save_resume_state(path, states: list) -> None:
+    """``states`` (:meth:`MonoFrontend.keyframe_states`) as one .npz (``k<i>_<key>``), written
+    atomically (temp file, fsync, rename)."""
+    from pathlib import Path
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_open(path, fsync=True) as fh:
+        np.savez(fh, **{f"k{i}_{k}": np.asarray(st[k]) for i, st in enumerate(states) for k in RESUME_KEYS})
+
+
+def _resume_entry(z, i: int) -> dict:
+    """Keyframe ``i`` of a loaded state file, checked (ValueError / KeyError when it is not one)."""
+    st = {k: np.array(z[f"k{i}_{k}"]) for k in RESUME_KEYS}
+    bad = [k for k, nd in RESUME_KEYS.items() if st[k].ndim != nd]
+    n = len(st["world"])
+    if bad or st["c2w"].shape != (4, 4) or st["world"].shape != (n, 3) or st["uv"].shape != (n, 2) \
+            or not all(np.isfinite(st[k]).all() for k in ("c2w", "world", "uv", "prev_c2w")):
+        raise ValueError(f"keyframe {i}: unexpected arrays {bad or 'shapes'}")
+    st["index"], st["prev_index"] = int(st["index"]), int(st["prev_index"])
+    return st
+
+
+def load_resume_state(path) -> Optional[list]:
+    """The keyframes :func:`save_resume_state` wrote (oldest first), or None when there is no such file
+    or it is not one (logged)."""
+    from pathlib import Path
+
+    if not Path(path).is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            count = len({name.split("_", 1)[0] for name in z.files})
+            states = [_resume_entry(z, i) for i in range(count)]
+        if not states or len({st["gray"].shape for st in states}) != 1:
+            raise ValueError("no keyframes, or images of different sizes")
+    except (OSError, ValueError, KeyError, EOFError) as e:
+        log.warning("ignoring the tracker state %s: %s", path, e)
+        return None
+    return states
