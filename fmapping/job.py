@@ -36,6 +36,17 @@ class Job:
             kw["bbox"] = tuple(tuple(map(float, r)) for r in kw["bbox"])
         return cls(**kw)
 
+    def mapper_config(self, cfg):
+        """``cfg`` (a :class:`~fmapping.mapping.MapperConfig`) with what the job says of the mapper: sensor
+        depth, the user's box, the device (``auto``: the config's)."""
+        if self.use_depth:
+            cfg = dataclasses.replace(cfg, use_depth=True)
+        if self.bbox is not None:
+            cfg = dataclasses.replace(cfg, bbox=tuple(tuple(map(float, r)) for r in self.bbox))
+        if self.device and self.device != "auto":
+            cfg = dataclasses.replace(cfg, device=self.device)
+        return cfg
+
     def source_options(self) -> dict:
         """The keyword arguments of :func:`fmapping.datasets.open_dataset` beyond camera and frame count."""
         return {"fps": self.data_fps, "topic": self.topic}

@@ -84,13 +84,7 @@ def build_config(job: Job) -> MapperConfig:
     cfg = load_config(MapperConfig(), job.config)
     if job.field:
         cfg = dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, kind=job.field))
-    if job.use_depth:
-        cfg = dataclasses.replace(cfg, use_depth=True)
-    if job.bbox is not None:
-        cfg = dataclasses.replace(cfg, bbox=tuple(tuple(map(float, r)) for r in job.bbox))
-    dev = job.device
-    if dev and dev != "auto":
-        cfg = dataclasses.replace(cfg, device=dev)
+    cfg = job.mapper_config(cfg)
     if job.poses == "gt":
         cfg = dataclasses.replace(cfg, optimize_init_poses=False)  # ground truth is trusted
     cfg.validate()

@@ -57,14 +57,7 @@ class SlamConfig:
 def build_slam_config(job: Job) -> SlamConfig:
     """The config of a ``fmapping slam`` job: its YAML, then the job's depth, box, device, pose source."""
     cfg = load_config(SlamConfig(), job.config)
-    m = cfg.mapper
-    if job.use_depth:
-        m = dataclasses.replace(m, use_depth=True)
-    if job.bbox is not None:
-        m = dataclasses.replace(m, bbox=tuple(tuple(map(float, r)) for r in job.bbox))
-    dev = job.device
-    if dev and dev != "auto":
-        m = dataclasses.replace(m, device=dev)
+    m = job.mapper_config(cfg.mapper)
     poses = job.poses
     if poses not in ("photometric",) or m.use_depth or (cfg.frontend == "mono" and not cfg.mapper_refines_init):
         # external poses are trusted; with sensor depth the bootstrap is RGB-D odometry, already metric
