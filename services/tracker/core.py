@@ -61,6 +61,7 @@ import numpy as np
 
 from fmapping import protocol as P
 from fmapping.geometry import orthonormalize
+from fmapping.session import REFINED, SKIPPED
 from services.core_support import ServiceCore
 from services.tracker.map_frontend import MapFrontend
 from services.tracker.resume_state import load_resume_state, save_resume_state
@@ -371,9 +372,9 @@ class TrackerCore(MapFrontend, ServiceCore):
         ("republished"), a skipped frame with ``quality = 0``, the rest in order (:meth:`_emit`)."""
         out: list[Output] = []
         for u in ups:
-            if u.kind == "skipped":
+            if u.kind == SKIPPED:
                 out.append(self._skip(u.index, u.timestamp))
-            elif u.kind == "refined":
+            elif u.kind == REFINED:
                 was = self.own_poses.get(u.index)
                 if was is not None:
                     self.own_poses[u.index] = was._replace(c2w=np.array(u.c2w))
