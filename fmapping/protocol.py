@@ -49,7 +49,7 @@ MAX_STRING = 4096  # text fields (errors, names, config strings)
 MAX_NESTING = 8  # config / args dictionaries
 MAX_MESSAGE_BYTES = 160 * 1024 * 1024  # a whole encoded message
 POSE_ORTHO_TOL = 1e-3  # |R^T R - I|_max accepted for a rotation block
-CONTROL_COMMANDS = ("start", "stop", "reset", "save", "pause", "resume")
+CONTROL_COMMANDS = ("start", "stop", "reset", "save", "pause", "resume", "refine")
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")  # safe inside a key expression
 _PICKLE_PROTOCOLS = (2, 3, 4, 5)
@@ -81,6 +81,9 @@ class Pose:
     source: str = "external"
     covariance: Optional[np.ndarray] = None  # (6, 6) float64 over the twist (rho, phi)
     quality: Optional[float] = None  # producer-defined score (e.g. photometric residual)
+    # the producer chose this frame as a keyframe (parallax / overlap): a mapper behind the stream keeps
+    # every keyframe and thins the other frames first (services.mapper.intake)
+    keyframe: bool = False
 
 
 @dataclass
@@ -131,7 +134,8 @@ class Status:
 
 @dataclass
 class Control:
-    """A command to all services: start | stop | reset | save | pause | resume.
+    """A command to all services: start | stop | reset | save | pause | resume | refine (the mapper's
+    global refinement over all its keyframes now, as at the end of the stream).
 
     ``args`` is a small JSON-like dict, e.g. ``{"reason": "end", "last_seq": 199}`` for the
     end-of-sequence stop, or ``{"target": "mapper"}`` to address one service.
@@ -413,6 +417,9 @@ def validate(msg: Message) -> Message:
             _check_array(msg.covariance, f"{w}.covariance", dtype="float64", ndim=2, shape=(6, 6), finite=True)
         if msg.quality is not None:
             msg.quality = _float(msg.quality, f"{w}.quality")
+        if not isinstance(msg.keyframe, (bool, np.bool_)):
+            raise ProtocolError(f"{w}.keyframe: expected true or false, got {type(msg.keyframe).__name__}")
+        msg.keyframe = bool(msg.keyframe)
     elif isinstance(msg, FieldSnapshot):
         w = "FieldSnapshot"
         msg.version = _int(msg.version, f"{w}.version", 0)

@@ -50,12 +50,15 @@ class SessionConfig:
 class PoseUpdate:
     """A pose for frame ``index``. ``kind``: ``tracked``; ``lost`` (a prediction, ``quality == 0``);
     ``skipped`` (no pose at all, e.g. a frame of a failed bootstrap: ``c2w`` is the identity); ``refined``
-    (a pose handed out before, moved by the bundle adjustment; ``timestamp`` / ``quality`` as before)."""
+    (a pose handed out before, moved by the bundle adjustment; ``timestamp`` / ``quality`` as before).
+    ``keyframe``: the front end made this frame a keyframe (parallax / overlap; the bootstrap's keyframes
+    too): a consumer that cannot keep up keeps these and thins the others."""
     index: int
     timestamp: float
     c2w: np.ndarray
     quality: float
     kind: str = TRACKED
+    keyframe: bool = False
 
     @property
     def usable(self) -> bool:
@@ -123,7 +126,8 @@ class PoseSession:
         if r.lost:
             out += self._give(PoseUpdate(index, timestamp, np.array(r.c2w), 0.0, LOST))
         else:
-            out += self._give(PoseUpdate(index, timestamp, np.array(r.c2w), float(max(r.inlier_ratio, 1e-6))))
+            out += self._give(PoseUpdate(index, timestamp, np.array(r.c2w), float(max(r.inlier_ratio, 1e-6)),
+                                         keyframe=self.frontend.is_keyframe(index)))
         if r.need_keyframe and not r.lost and self.cfg.republish:
             out += self._refined()
         return out
@@ -151,7 +155,8 @@ class PoseSession:
         out: list[PoseUpdate] = []
         self.bootstrapped = sorted(poses)
         for s in sorted(poses):
-            out += self._give(PoseUpdate(s, self._boot.get(s, 0.0), np.array(poses[s]), 1.0))
+            out += self._give(PoseUpdate(s, self._boot.get(s, 0.0), np.array(poses[s]), 1.0,
+                                         keyframe=fe.is_keyframe(s)))
         self._boot.clear()
         return out + self.release()
 
@@ -161,7 +166,7 @@ class PoseSession:
         c2w = self.frontend.resume(index, np.asarray(rgb), states)
         if c2w is None:
             return None
-        return self._give(PoseUpdate(index, timestamp, np.array(c2w), 1.0))
+        return self._give(PoseUpdate(index, timestamp, np.array(c2w), 1.0, keyframe=self.frontend.is_keyframe(index)))
 
     def _give(self, u: PoseUpdate) -> list[PoseUpdate]:
         """Hand ``u`` out, or hold it while the scale is about to change (a mapper would have integrated it)."""

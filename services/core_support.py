@@ -186,10 +186,16 @@ class Inbox:
     closest together (:func:`thin_victim`), so that a backlog stays spread evenly over the
     time it covers. The mapper's frames use it: while a long update runs it then gets a
     subsampled stream rather than only the newest frames.
+
+    A thinned channel may also have a ``rank`` (item -> int, asked at eviction time): the victim
+    is then thinned out of the items of the lowest rank only, the new item included (the mapper's
+    frames: known non-keyframes first, then frames whose pose has not come, keyframes last; see
+    :mod:`services.mapper.intake`). Evictions of items of rank >= 2 are also counted as
+    ``dropped_<channel>_rank2``.
     """
 
     def __init__(self, capacities: dict[str, int], counters: Optional[Counters] = None, thin: Sequence[str] = (),
-                 max_bytes: Optional[dict[str, int]] = None):
+                 max_bytes: Optional[dict[str, int]] = None, rank: Optional[dict[str, Callable[[Any], int]]] = None):
         self._q = {name: collections.deque() for name in capacities}
         self._cap = dict(capacities)
         self._max_bytes = {name: int((max_bytes or {}).get(name, DEFAULT_CHANNEL_BYTES)) for name in capacities}
@@ -197,6 +203,10 @@ class Inbox:
         self._bytes = {name: 0 for name in capacities}
         self._thin = {name: collections.deque() for name in thin}  # arrival numbers of the thinned channels
         self._arrivals = 0
+        self._rank = dict(rank or {})
+        for name in self._rank:
+            if name not in self._thin:
+                raise ValueError(f"Inbox: ranked channel {name!r} must also be thinned")
         self._cond = threading.Condition()
         self.counters = counters or Counters()
 
@@ -213,10 +223,14 @@ class Inbox:
             q.append(item)
             sizes.append(size)
             self._bytes[channel] += size
-            dropped = 0
+            dropped = ranked_out = 0
+            rank = self._rank.get(channel)
             while len(q) > 1 and (len(q) > self._cap[channel] or self._bytes[channel] > self._max_bytes[channel]):
-                # the victim is never the new item: thin_victim keeps the newest, drop-oldest takes index 0
-                i = thin_victim(arr) if arr is not None else 0
+                if rank is not None:  # thinned among the lowest rank (the new item may go)
+                    i, r = ranked_victim(arr, [rank(x) for x in q])
+                    ranked_out += r >= 2
+                else:  # never the new item: thin_victim keeps the newest, drop-oldest takes index 0
+                    i = thin_victim(arr) if arr is not None else 0
                 del q[i]
                 if arr is not None:
                     del arr[i]
@@ -227,6 +241,8 @@ class Inbox:
         self.counters.inc(f"received_{channel}")
         if dropped:
             self.counters.inc(f"dropped_{channel}", dropped)
+        if ranked_out:
+            self.counters.inc(f"dropped_{channel}_rank2", ranked_out)
         return not dropped
 
     def get(self, timeout: Optional[float] = None) -> Optional[tuple[str, Any]]:
@@ -270,6 +286,14 @@ def item_bytes(item: Any) -> int:
     elements), 0 for anything else."""
     parts = item if isinstance(item, tuple) else (item,)
     return sum(len(x) for x in parts if isinstance(x, (bytes, bytearray, memoryview)))
+
+
+def ranked_victim(arrivals: Sequence[int], ranks: Sequence[int]) -> tuple[int, int]:
+    """(index, rank) of the item to drop from a full ranked queue: :func:`thin_victim` among the items of
+    the lowest rank (their arrival numbers), so that what stays of that rank is spread evenly."""
+    low = min(ranks)
+    idx = [i for i, r in enumerate(ranks) if r == low]
+    return idx[thin_victim([arrivals[i] for i in idx])], low
 
 
 def thin_victim(arrivals: Sequence[int]) -> int:

@@ -95,7 +95,7 @@ class Service:
     def __init__(self, name: str, args, capacities: Optional[dict[str, int]] = None,
                  session: Optional[zenoh.Session] = None, keys: Optional[P.Keys] = None,
                  install_signals: Optional[bool] = None, thin: Sequence[str] = (),
-                 max_bytes: Optional[dict[str, int]] = None):
+                 max_bytes: Optional[dict[str, int]] = None, rank: Optional[dict] = None):
         self.name = name
         self.args = args
         self.status = StatusBoard(name)
@@ -104,7 +104,7 @@ class Service:
         if "control" in capacities and "end" not in capacities:
             # stop commands (the end of the sequence) first, in a queue nothing else can evict
             capacities = {"end": END_CAPACITY, **capacities}
-        self.inbox = Inbox(capacities, self.counters, thin, max_bytes)
+        self.inbox = Inbox(capacities, self.counters, thin, max_bytes, rank)
         if install_signals is None:
             install_signals = session is None
         self.shutdown = Shutdown(install=install_signals, watch_parent=bool(getattr(args, "exit_with_parent", False)))

@@ -63,6 +63,7 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
         self._depths: dict[int, Tensor] = {}
         self._poses: dict[int, Tensor] = {}  # float64 (4, 4) c2w of every frame seen (refined at init)
         self._timestamps: dict[int, float] = {}
+        self._frame_no: dict[int, int] = {}  # the caller's frame number of a frame id (when it differs)
         self._guessed: set[int] = set()  # frames whose pose was guessed (c2w None)
         self._next_id = 0
         self._init_ids: list[int] = []
@@ -82,8 +83,26 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
 
     # ================================================================= public API
     def add_frame(self, rgb: np.ndarray, c2w: Optional[np.ndarray], timestamp: float = 0.0,
-                  depth: Optional[np.ndarray] = None) -> Optional[WindowStats]:
-        """Add the next frame; run the init stage or a window update when due and return its stats."""
+                  depth: Optional[np.ndarray] = None, defer: bool = False,
+                  frame_no: Optional[int] = None) -> Optional[WindowStats]:
+        """Add the next frame; run the init stage or a window update when due and return its stats.
+
+        ``defer`` (a caller behind the stream, catching up): a window update waits until up to a whole
+        local window (``window_size - n_global_keyframes``) of new frames are pending, instead of
+        ``new_frames_per_window``: fewer updates over more frames each.
+        ``frame_no``: the frame's number in the caller's stream (default: the order added). Keyframes are
+        spaced ``keyframe_every`` stream frames apart, so a caller that skips frames keeps as many."""
+        if frame_no is not None and self._next_id > 0 and frame_no <= self.frame_number(self._next_id - 1):
+            raise ValueError(f"Mapper.add_frame: frame number {frame_no} does not follow "
+                             f"{self.frame_number(self._next_id - 1)}")
+        return self._add_frame(rgb, c2w, timestamp, depth, defer, frame_no)
+
+    def frame_number(self, fid: int) -> int:
+        """The caller's frame number of frame id ``fid`` (``frame_no`` of :meth:`add_frame`, else ``fid``)."""
+        return self._frame_no.get(fid, fid)
+
+    def _add_frame(self, rgb, c2w, timestamp, depth, defer, frame_no) -> Optional[WindowStats]:
+        """:meth:`add_frame`, the frame number checked."""
         img, pose, dep = self._validate_frame(rgb, c2w, depth)
         fid = self._next_id
         if pose is None:
@@ -95,6 +114,8 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
             self._depths[fid] = dep
         self._poses[fid] = pose
         self._timestamps[fid] = float(timestamp)
+        if frame_no is not None and frame_no != fid:
+            self._frame_no[fid] = int(frame_no)
         self._finished = False
         if self._sparse is not None and fid not in self._guessed:  # a guessed pose would triangulate garbage
             self._sparse.add(fid, img.numpy(), pose.numpy())
@@ -106,7 +127,8 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
                 return self._run_init()
             return None
         self._pending.append(fid)
-        if len(self._pending) >= self.cfg.new_frames_per_window:
+        due = self.cfg.window_size - self.cfg.n_global_keyframes if defer else self.cfg.new_frames_per_window
+        if len(self._pending) >= due:
             return self._run_window()
         return None
 
@@ -121,6 +143,17 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
             last = self._run_final()
         self._finished = True
         return last
+
+    def refine(self, iters: Optional[int] = None) -> Optional[WindowStats]:
+        """The closing global refinement over all keyframes now (``iters``, default
+        ``final_global_iters``), without ending the run: later frames go on as before. Pending frames
+        get their window first. None before the map is initialised."""
+        if not self.initialized:
+            return None
+        if self._pending:
+            self._run_window()
+        n = self.cfg.final_global_iters if iters is None else int(iters)
+        return self._run_final(n) if n > 0 else None
 
     def set_poses(self, poses: dict) -> int:
         """Replace the poses of frames already added (``{frame id: c2w}``), e.g. with a tracker's

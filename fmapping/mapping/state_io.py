@@ -33,6 +33,7 @@ class MapperStateIO:
             "depths": {int(i): dp.clone() for i, dp in self._depths.items()},
             "poses": {int(i): p.clone() for i, p in self._poses.items()},
             "timestamps": {int(i): float(t) for i, t in self._timestamps.items()},
+            "frame_numbers": {int(i): int(n) for i, n in self._frame_no.items()},
             "guessed": sorted(self._guessed),
             "next_id": self._next_id,
             "init_ids": list(self._init_ids),
@@ -62,6 +63,7 @@ class MapperStateIO:
         self._depths = {int(i): dp.clone() for i, dp in d["depths"].items()}
         self._poses = {int(i): p.clone().to(torch.float64) for i, p in d["poses"].items()}
         self._timestamps = {int(i): float(t) for i, t in d["timestamps"].items()}
+        self._frame_no = {int(i): int(n) for i, n in d.get("frame_numbers", {}).items()}
         self._guessed = set(d["guessed"])
         self._next_id = int(d["next_id"])
         self._init_ids = list(d["init_ids"])

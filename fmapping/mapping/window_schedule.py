@@ -97,7 +97,7 @@ class WindowSchedule:
         n_local = cfg.window_size - cfg.n_global_keyframes
         self._keyframes = [ids[0]]
         for i in ids[1:]:
-            if len(ids) - ids.index(i) > n_local and (i - self._keyframes[-1]) >= cfg.keyframe_every:
+            if len(ids) - ids.index(i) > n_local and self._frames_apart(self._keyframes[-1], i) >= cfg.keyframe_every:
                 self._keyframes.append(i)
         self._local = ids[-n_local:]
         for i in ids:
@@ -110,6 +110,10 @@ class WindowSchedule:
                             pc_loss=st.pc_loss if st else 0.0)
         self._stats.append(stats)
         return stats
+
+    def _frames_apart(self, a: int, b: int) -> int:
+        """Stream frames between frame ids ``a`` and ``b`` (:meth:`Mapper.frame_number`)."""
+        return self.frame_number(b) - self.frame_number(a)
 
     def _drop_image_if_unused(self, fid: int) -> None:
         if fid not in self._local and fid not in self._keyframes and fid not in self._pending:
@@ -125,8 +129,7 @@ class WindowSchedule:
         self._local.extend(new)
         while len(self._local) > n_local:
             old = self._local.pop(0)
-            last_kf = self._keyframes[-1] if self._keyframes else -10 ** 9
-            if old - last_kf >= cfg.keyframe_every:
+            if not self._keyframes or self._frames_apart(self._keyframes[-1], old) >= cfg.keyframe_every:
                 self._keyframes.append(old)
             self._drop_image_if_unused(old)
         self._grow_box()
@@ -138,15 +141,16 @@ class WindowSchedule:
         self._stats.append(st)
         return st
 
-    def _run_final(self) -> WindowStats:
+    def _run_final(self, iters: Optional[int] = None) -> WindowStats:
         cfg = self.cfg
+        total = cfg.final_global_iters if iters is None else int(iters)
         t0 = time.perf_counter()
         pool = sorted(set(self._keyframes) | set(self._local))
         logs = []
         done = 0
         chunk = max(1, cfg.iters_per_window)
-        while done < cfg.final_global_iters:
-            k = min(chunk, cfg.final_global_iters - done)
+        while done < total:
+            k = min(chunk, total - done)
             anchor = pool[int(torch.randint(len(pool), (1,), generator=self._gen))]
             others = [i for i in pool if i != anchor]
             ids = [anchor] + self._select_global([anchor], min(cfg.window_size - 1, len(others)), pool=others,

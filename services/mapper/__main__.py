@@ -20,6 +20,7 @@ from fmapping import protocol as P
 from fmapping.cancel import Cancelled
 from services.core_support import MIB
 from services.mapper.core import POSE_SOURCES, MapperCore, MapperServiceOptions, load_mapper_config
+from services.mapper.intake import FRAME_BYTES, FRAME_CAPACITY, book_for, frame_rank
 from services.process import (FirstMessage, add_first_message_arg, available_cpus, run_main, service_parser,
                               set_torch_threads, setup_logging)
 from services.transport import Service
@@ -54,6 +55,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resent-frames", action="store_true",
                    help="the player sends a restarted pose source the frames it never handled again (io play "
                         "--resend-to): frames waiting for a pose wait for its answers (else skipped at once)")
+    p.add_argument("--keyframes", default="auto", choices=["auto", "source", "motion"],
+                   help="which frames are keyframes (kept when the mapper falls behind): source = the pose "
+                        "source's flag, motion = every --keyframe-every frames or 5 cm / 5 deg of camera motion; "
+                        "auto = source for the tracker, motion for gt / external poses")
+    p.add_argument("--keyframe-every", type=int, default=5, help="motion keyframes: at least every this many frames")
+    p.add_argument("--behind-frames", type=int, default=10,
+                   help="frames waiting beyond which the mapper maps keyframes only and windows take more frames")
     p.add_argument("--device", default=None, help="torch device (default: the config's, 'auto')")
     p.add_argument("--threads", type=int, default=0,
                    help="torch threads (0 = auto: half the CPUs this process may use, at least 1)")
@@ -63,9 +71,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # inbox bounds per channel, items and bytes (the stop queue "end" comes first, see services.transport):
-# at most ~266 MiB queued, whatever arrives; 32 frames of 1280x720 RGB-D are ~205 MB
-CAPACITIES = {"end": 8, "control": 64, "status": 16, "poses": 8192, "frames": 32}
-MAX_BYTES = {"end": 1 * MIB, "control": 1 * MIB, "status": 1 * MIB, "poses": 8 * MIB, "frames": 256 * MIB}
+# at most ~394 MiB queued, whatever arrives; the frames' ceiling and eviction order: services.mapper.intake
+CAPACITIES = {"end": 8, "control": 64, "status": 16, "poses": 8192, "frames": FRAME_CAPACITY}
+MAX_BYTES = {"end": 1 * MIB, "control": 1 * MIB, "status": 1 * MIB, "poses": 8 * MIB, "frames": FRAME_BYTES}
 
 
 def main(argv=None, session=None, keys=None) -> int:
@@ -84,24 +92,27 @@ def main(argv=None, session=None, keys=None) -> int:
         points_interval=args.points_interval, max_points=args.max_points, write_mesh=not args.no_mesh,
         mesh_resolution=args.mesh_resolution,
         anchor_source=args.anchor, anchor_frames=args.anchor_frames, pose_timeout=args.pose_timeout,
-        resent_frames=args.resent_frames,
+        resent_frames=args.resent_frames, keyframes=args.keyframes, keyframe_every=args.keyframe_every,
+        behind_frames=args.behind_frames,
     ).validate()
-    # frames: thinned when full (a long update then leaves an evenly subsampled backlog, not the newest only)
+    # frames: when full, known non-keyframes go first, then frames without a pose yet, thinned evenly
+    book = book_for(opts)
     with Service("mapper", args, capacities=CAPACITIES, max_bytes=MAX_BYTES, session=session,
-                 keys=keys, thin=("frames",)) as svc:
-        return serve(svc, cfg, opts, args)
+                 keys=keys, thin=("frames",), rank={"frames": frame_rank(book)}) as svc:
+        return serve(svc, cfg, opts, args, book)
 
 
-def serve(svc: Service, cfg, opts: MapperServiceOptions, args) -> int:
+def serve(svc: Service, cfg, opts: MapperServiceOptions, args, book=None) -> int:
     # a stop request (signal, parent gone) cancels a long update between two iterations
     core = MapperCore(cfg, opts, counters=svc.counters, on_bad_input=svc.report_bad_input,
-                      should_stop=lambda: svc.shutdown.requested)
+                      should_stop=lambda: svc.shutdown.requested, book=book)
+    core.backlog = lambda: svc.inbox.size("frames")
     if opts.resume and core.load_checkpoint():
         svc.log.info("resumed from %s at frame %d (field version %d)", core.resumed_from, core.ack, core.version)
     keys = svc.keys
     # checked before queueing: a bad or implausible message never displaces a real one
     svc.subscribe_control()
-    svc.subscribe(keys.poses(opts.pose_source), "poses", admit=lambda k, d: core.admit("poses", d, k))
+    svc.subscribe(keys.poses(opts.pose_source), "poses", admit=lambda k, d: core.admit_pose(d, k))
     if opts.anchor_source:
         svc.subscribe(keys.poses(opts.anchor_source), "poses", admit=lambda k, d: core.admit("poses", d, k))
     svc.subscribe(keys.frames, "frames", admit=lambda k, d: core.admit("frames", d, k))

@@ -37,7 +37,7 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 
@@ -46,6 +46,7 @@ from fmapping.fileio import atomic_open, write_json
 from fmapping.geometry import orthonormalize
 from fmapping.map_outputs import map_mesh, map_points
 from services.core_support import ServiceCore
+from services.mapper.intake import KeyframeBook, book_for
 
 log = logging.getLogger("fmapping.mapper")
 
@@ -73,6 +74,13 @@ class MapperServiceOptions:
     # frames waiting for a pose then wait for the new source's answers instead of being skipped at once
     resent_frames: bool = False
     max_poses: int = 4096  # poses waiting for their frame
+    # keyframes (services.mapper.intake): "source" trusts Pose.keyframe, "motion" flags them by camera motion,
+    # "auto" = source for the tracker, motion for gt / external poses (which flag none)
+    keyframes: str = "auto"
+    keyframe_every: int = 5  # motion rule: at least every this many frames ...
+    keyframe_move_m: float = 0.05  # ... or when the camera moved this far / turned this much since the last one
+    keyframe_turn_deg: float = 5.0
+    behind_frames: int = 10  # frames waiting beyond which non-keyframes are skipped and windows take more frames
     publish_mapper_poses: bool = True
     write_mesh: bool = True
     mesh_resolution: int = 96  # marching-cubes grid per axis
@@ -88,6 +96,12 @@ class MapperServiceOptions:
             self.anchor_source = "gt" if self.unposed_init else ""
         if self.anchor_source == self.pose_source:
             self.anchor_source = ""
+        if self.keyframes == "auto":
+            self.keyframes = "source" if self.pose_source == "tracker" else "motion"
+        if self.keyframes not in ("source", "motion"):
+            raise ValueError(f"keyframes must be auto, source or motion, got {self.keyframes!r}")
+        if self.keyframe_every < 1 or self.behind_frames < 1:
+            raise ValueError("keyframe_every and behind_frames must be >= 1")
         return self
 
 
@@ -100,7 +114,7 @@ class MapperCore(ServiceCore):
     CHANNELS = {"frames": P.Frame, "poses": P.Pose, "control": P.Control}
 
     def __init__(self, cfg, opts: Optional[MapperServiceOptions] = None, counters=None, device=None,
-                 on_bad_input=None, clock=time.monotonic, should_stop=None):
+                 on_bad_input=None, clock=time.monotonic, should_stop=None, book: Optional[KeyframeBook] = None):
         from fmapping.mapping import MapperConfig
 
         super().__init__(counters, on_bad_input)
@@ -138,6 +152,8 @@ class MapperCore(ServiceCore):
         self.out = out
         ck = self.opts.checkpoint or (str(out / "checkpoint.pt") if out else None)
         self.checkpoint_path = Path(ck) if ck else None
+        self.book = book if book is not None else book_for(self.opts)  # keyframe flags (shared with the inbox)
+        self.backlog: Callable[[], int] = lambda: 0  # frames queued before the core (the shell's inbox)
 
     # ------------------------------------------------------------ inputs
     @property
@@ -159,6 +175,14 @@ class MapperCore(ServiceCore):
         if isinstance(msg, P.Control):
             return self.on_control(msg)
         raise ValueError(f"MapperCore: unexpected message {type(msg).__name__}")
+
+    def admit_pose(self, data: bytes, key: str = "") -> Optional[P.Pose]:
+        """:meth:`admit` a pose and note its keyframe flag at once (the zenoh callback): the inbox asks the
+        flags when it must evict a frame, before the worker reaches the pose."""
+        msg = self.admit("poses", data, key)
+        if msg is not None and msg.source == self.opts.pose_source and msg.seq > self.last_seq:
+            self.book.note(msg)
+        return msg
 
     def on_frame(self, f: P.Frame) -> list[Output]:
         cam = self.frame_camera(f, undistorted=True)  # the first frame fixes it: only one the mapper can use
@@ -191,6 +215,7 @@ class MapperCore(ServiceCore):
             return []
         if p.seq <= self.last_seq:
             return self._refine_pose(p)
+        self.book.note(p)
         self.poses[p.seq] = p
         self.counters.inc("poses_received")
         if self._source_restarted:  # the restarted source's first answer: it will not answer earlier frames
@@ -258,7 +283,22 @@ class MapperCore(ServiceCore):
                 self.write_outputs(final=False)
         elif c.command == "stop":
             return self.finish()
+        elif c.command == "refine":
+            return self.refine(c.args.get("iters"))
         return []
+
+    def refine(self, iters=None) -> list[Output]:
+        """The global refinement over all keyframes now (``Control(refine, {iters: N})``), the run goes on."""
+        if self.mapper is None or not self.mapper.initialized or self.finished:
+            return []
+        if iters is not None and (isinstance(iters, bool) or not isinstance(iters, int) or not 0 < iters <= 100_000):
+            self.bad_input(f"refine: iters must be an integer in 1..100000, got {iters!r}", "rejected_controls")
+            return []
+        stats = self.mapper.refine(iters)
+        if stats is None:
+            return []
+        self.counters.inc("refinements")
+        return self._after_update(stats)
 
     # ------------------------------------------------------------ mapping
     def _ensure_mapper(self) -> None:
@@ -301,21 +341,34 @@ class MapperCore(ServiceCore):
                     self.last_seq = max(self.last_seq, seq)
                     continue
                 break
+            behind = self.behind()
+            if pose is not None and behind and self.mapper is not None and self.mapper.initialized \
+                    and not self.book.is_keyframe(seq):
+                self.frames.popitem(last=False)  # catching up: keyframes only
+                self.counters.inc("frames_thinned")
+                self.last_seq = max(self.last_seq, seq)
+                continue
             self.frames.popitem(last=False)
-            out += self._add(frame, pose)
+            out += self._add(frame, pose, defer=behind)
         for d in (self.poses, self.anchors, self._arrived):
             for s in [s for s in d if s <= self.last_seq]:
                 del d[s]
+        self.book.forget_before(self.last_seq + 1)
         if self.mapper is not None and self.mapper.initialized:
             self.anchors.clear()
         return out
 
-    def _add(self, f: P.Frame, pose: Optional[P.Pose]) -> list[Output]:
+    def behind(self) -> bool:
+        """More than ``behind_frames`` frames wait (here and in the shell's inbox): catch up."""
+        return len(self.frames) + self.backlog() > self.opts.behind_frames
+
+    def _add(self, f: P.Frame, pose: Optional[P.Pose], defer: bool = False) -> list[Output]:
         self._ensure_mapper()
         t0 = time.perf_counter()
         try:
             stats = self.mapper.add_frame(np.array(f.rgb), None if pose is None else np.array(pose.c2w),
-                                          timestamp=f.timestamp, depth=None if f.depth is None else np.array(f.depth))
+                                          timestamp=f.timestamp, depth=None if f.depth is None else np.array(f.depth),
+                                          defer=defer, frame_no=f.seq)
         except ValueError as e:  # the library refused this frame: count it, keep going
             self.bad_input(f"frame {f.seq}: {e}", "rejected_frames")
             self.last_seq = max(self.last_seq, f.seq)
@@ -325,6 +378,8 @@ class MapperCore(ServiceCore):
         self._acked_ts = f.timestamp
         self.counters.inc("frames_processed")
         self.counters.inc("frames_unposed" if pose is None else "frames_posed")
+        if self.book.is_keyframe(f.seq):
+            self.counters.inc("keyframes_integrated")
         if stats is None:
             return []
         now = self.clock()  # the update kept us from reading poses: pending frames start waiting afresh

@@ -107,6 +107,7 @@ class OwnPose(NamedTuple):
     c2w: np.ndarray
     timestamp: float
     quality: float
+    keyframe: bool = False
 
 
 class TrackerCore(MapFrontend, ServiceCore):
@@ -280,7 +281,7 @@ class TrackerCore(MapFrontend, ServiceCore):
         if own is None:
             return [self._skip(f.seq, f.timestamp)]
         return [("poses", P.Pose(seq=f.seq, timestamp=own.timestamp, c2w=orthonormalize(own.c2w), source="tracker",
-                                 quality=own.quality))]
+                                 quality=own.quality, keyframe=own.keyframe))]
 
     def _resume_mono(self, seq: int, f: P.Frame) -> list[Output]:
         """A restarted tracker: re-localise frame ``seq`` against the saved keyframes (``resume_state``)
@@ -380,31 +381,32 @@ class TrackerCore(MapFrontend, ServiceCore):
                     self.own_poses[u.index] = was._replace(c2w=np.array(u.c2w))
                 self.counters.inc("republished")
                 out.append(("poses", P.Pose(seq=u.index, timestamp=u.timestamp, c2w=orthonormalize(u.c2w),
-                                            source="tracker", quality=u.quality)))
+                                            source="tracker", quality=u.quality, keyframe=u.keyframe)))
             else:
                 if u.quality > 0:
-                    self._keep_own(u.index, u.c2w, u.timestamp, u.quality)
-                out += self._emit(u.index, u.timestamp, u.c2w, u.quality)
+                    self._keep_own(u.index, u.c2w, u.timestamp, u.quality, u.keyframe)
+                out += self._emit(u.index, u.timestamp, u.c2w, u.quality, u.keyframe)
         la = self.mono.late_anchor if self.mono is not None else None
         if la is not None and not self.anchors:
             self.counters.set("late_anchor_factor", round(float(la["factor"]), 6))
         return out
 
-    def _keep_own(self, seq: int, c2w: np.ndarray, stamp: float, quality: float) -> None:
+    def _keep_own(self, seq: int, c2w: np.ndarray, stamp: float, quality: float, keyframe: bool = False) -> None:
         """Remember a tracked pose as published."""
-        self._bounded_put(self.own_poses, seq, OwnPose(np.array(c2w), float(stamp), float(quality)))
+        self._bounded_put(self.own_poses, seq, OwnPose(np.array(c2w), float(stamp), float(quality), bool(keyframe)))
 
     # ------------------------------------------------------------ tracking
-    def _emit(self, seq: int, stamp: float, c2w: np.ndarray, quality: Optional[float]) -> list[Output]:
-        """The pose of frame ``seq``, preceded by ``quality = 0`` answers for frames that never
-        reached us (dropped upstream), so that nobody waits for them."""
+    def _emit(self, seq: int, stamp: float, c2w: np.ndarray, quality: Optional[float],
+              keyframe: bool = False) -> list[Output]:
+        """The pose of frame ``seq`` (``keyframe``: the front end made it one), preceded by ``quality = 0``
+        answers for frames that never reached us (dropped upstream), so that nobody waits for them."""
         out: list[Output] = []
         if 0 <= self.last_seq < seq - 1 and seq - self.last_seq <= 1024:
             for s in range(self.last_seq + 1, seq):
                 out.append(self._skip(s))
         self.last_seq = max(self.last_seq, seq)
         out.append(("poses", P.Pose(seq=seq, timestamp=stamp, c2w=orthonormalize(c2w), source="tracker",
-                                    quality=quality)))
+                                    quality=quality, keyframe=bool(keyframe))))
         return out
 
     def _skip(self, seq: int, stamp: float = 0.0) -> Output:

@@ -245,5 +245,5 @@ class MapFrontend:
         quality = self._count(f, res)
         if quality <= 0:
             return self._emit(f.seq, f.timestamp, res.c2w, 0.0)
-        self._keep_own(f.seq, res.c2w, f.timestamp, quality)
-        return self._emit(f.seq, f.timestamp, res.c2w, quality)
+        self._keep_own(f.seq, res.c2w, f.timestamp, quality, res.need_keyframe)
+        return self._emit(f.seq, f.timestamp, res.c2w, quality, res.need_keyframe)

@@ -330,6 +330,10 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
     def keyframe_index(self) -> int:
         return self._kf_index
 
+    def is_keyframe(self, index: int) -> bool:
+        """Is frame ``index`` one of the front end's keyframes (bootstrap or tracked)?"""
+        return index in self.store.kf_pose
+
     def keyframe_poses(self) -> dict:
         return {k: p.copy() for k, p in self.store.kf_pose.items()}
 

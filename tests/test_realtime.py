@@ -1,0 +1,151 @@
+"""Real time without a real clock: the service cores driven in-process at 30 fps on a fake clock.
+
+The player publishes frame k at k / 30 s whether the mapper is ready or not; the tracker answers at
+once (its per-frame time is far below a frame's); a mapper update blocks the mapper for a fixed number
+of fake seconds (init 1.0 s, a window 0.25 s), during which frames and poses pile up in the mapper's
+bounded inbox (:mod:`services.mapper.intake`). No timing is measured: the same schedule runs on any
+machine. Also the pieces: the ranked eviction order and the mapper's own keyframe rule.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fmapping import protocol as P
+from service_helpers import small_cfg
+
+FPS = 30.0
+COST_S = {"init": 1.0, "window": 0.25, "final": 0.5}  # fake seconds one mapper update keeps the mapper busy
+
+
+# ---------------------------------------------------------------------------- pieces
+def test_ranked_inbox_evicts_non_keyframes_first_then_unknown_and_thins_evenly():
+    from services.core_support import Inbox, ranked_victim
+    from services.mapper.intake import KeyframeBook, frame_rank
+
+    book = KeyframeBook(source_flags=True)
+    inbox = Inbox({"frames": 6}, thin=("frames",), rank={"frames": frame_rank(book)})
+    frame = lambda s: ("k", P.Pose(seq=s, timestamp=0.0, c2w=np.eye(4)))  # noqa: E731  (anything with .seq)
+    for s in range(10):  # poses of 0..9 known: keyframes 0, 4, 8; 10.. unknown
+        book.note(P.Pose(seq=s, timestamp=0.0, c2w=np.eye(4), source="tracker", keyframe=s % 4 == 0))
+    for s in range(14):
+        inbox.put("frames", frame(s))
+    kept = []
+    while (it := inbox.get(timeout=0)) is not None:
+        kept.append(it[1][1].seq)
+    # 14 in, 6 kept: the 7 non-keyframes went first, then one of the unknown 10..13; the keyframes stay
+    assert {0, 4, 8} <= set(kept) and len(kept) == 6 and inbox.counters.get("dropped_frames") == 8
+    assert inbox.counters.get("dropped_frames_rank2") == 0
+    assert set(kept) - {0, 4, 8} <= {10, 11, 12, 13} and len(set(kept) & {10, 11, 12, 13}) == 3
+    # within the lowest rank the evenly spread survive: its oldest and newest stay, the victim leaves the
+    # smallest gap (the oldest of equals)
+    assert ranked_victim([1, 2, 3, 7, 8], [1, 0, 0, 0, 2]) == (2, 0)
+    assert ranked_victim([1, 2, 4, 5, 9], [0, 0, 0, 0, 0]) == (1, 0)  # 2 leaves gap 3 (1..4), 4 too: the older
+    assert ranked_victim([1, 2, 3], [2, 2, 1]) == (2, 1)  # the new item itself when it is the least
+
+
+def test_keyframe_book_motion_rule_for_sources_without_flags():
+    from fmapping.geometry import se3_exp_np
+    from services.mapper.intake import KeyframeBook
+
+    book = KeyframeBook(source_flags=False, every=5, min_move_m=0.05, min_turn_deg=5.0)
+    c2w, flags = np.eye(4), []
+    for s in range(12):  # 1 cm per frame: every 5th frame by count; then a 6 cm jump at 12
+        c2w = c2w @ se3_exp_np(np.array([0.01, 0, 0, 0, 0, 0]))
+        flags.append(book.note(P.Pose(seq=s, timestamp=0.0, c2w=c2w, source="gt")))
+    assert [s for s, f in enumerate(flags) if f] == [0, 5, 10]
+    jump = c2w @ se3_exp_np(np.array([0.06, 0, 0, 0, 0, 0]))
+    assert book.note(P.Pose(seq=12, timestamp=0.0, c2w=jump, source="gt"))
+    turn = jump @ se3_exp_np(np.array([0, 0, 0, 0, np.radians(6.0), 0]))
+    assert book.note(P.Pose(seq=13, timestamp=0.0, c2w=turn, source="gt"))
+    assert not book.note(P.Pose(seq=14, timestamp=0.0, c2w=turn, source="gt", quality=0.0))  # unusable
+    # a source that flags its own: the flag is taken as is
+    src = KeyframeBook(source_flags=True)
+    assert not src.note(P.Pose(seq=0, timestamp=0.0, c2w=np.eye(4), source="tracker"))
+    assert src.note(P.Pose(seq=1, timestamp=0.0, c2w=np.eye(4), source="tracker", keyframe=True))
+
+
+# ---------------------------------------------------------------------------- 30 fps on a fake clock
+def _tracker_stream(ds) -> tuple[list[bytes], list[list[bytes]]]:
+    """The frames as the player sends them and, per frame, the poses the mono tracker core publishes
+    when it has handled that frame (the last list also holds what it releases at the end)."""
+    from services.tracker.core import TrackerCore
+
+    core = TrackerCore()
+    frames, poses = [], []
+    for k in range(len(ds)):
+        fb = P.encode(P.frame_from_dataset(ds[k], seq=k, with_depth=False))
+        frames.append(fb)
+        poses.append([P.encode(m) for ch, m in core.handle("frames", fb) if ch == "poses"])
+    poses[-1] += [P.encode(m) for ch, m in core.apply(P.Control("stop", {"reason": "end"})) if ch == "poses"]
+    return frames, poses
+
+
+def _run_mapper_at_30fps(frames, poses, capacity: int, ranked: bool):
+    """The mapper's shell loop on a fake clock (see the module docstring); returns the core after the
+    end of the stream (its closing stage run) and the fake time it finished."""
+    from services.core_support import Counters, Inbox
+    from services.mapper.core import MapperCore, MapperServiceOptions
+    from services.mapper.intake import book_for, frame_rank
+
+    now = [0.0]
+    opts = MapperServiceOptions(pose_source="tracker", points_interval=1e9, checkpoint_every=0, pose_timeout=0)
+    book = book_for(opts.validate())
+    counters = Counters()  # shared by the inbox and the core, as in the service
+    inbox = Inbox({"poses": 8192, "frames": capacity}, counters, thin=("frames",),
+                  rank={"frames": frame_rank(book)} if ranked else None)
+    core = MapperCore(small_cfg(final_global_iters=4), opts, counters=counters, book=book, clock=lambda: now[0])
+    core.backlog = lambda: inbox.size("frames")
+    n, k = len(frames), 0
+    while True:
+        while k < n and k / FPS <= now[0]:  # everything published while the mapper was busy
+            for pb in poses[k]:
+                msg = core.admit_pose(pb, "poses/tracker")
+                if msg is not None:
+                    inbox.put("poses", ("poses/tracker", msg))
+            inbox.put("frames", ("frames", core.admit("frames", frames[k])))
+            k += 1
+        item = inbox.get(timeout=0)
+        if item is None:
+            if k == n:
+                break  # the player saw the last acknowledgement: the end-of-sequence stop comes
+            now[0] = k / FPS  # idle until the next frame
+            continue
+        before = {kind: core.counters.get(f"updates_{kind}") for kind in COST_S}
+        core.apply(item[1][1])
+        now[0] += sum(COST_S[kd] for kd in COST_S if core.counters.get(f"updates_{kd}") > before[kd])
+    core.apply(P.Control("stop", {"reason": "end"}))
+    return core, now[0]
+
+
+@pytest.mark.slow
+def test_mapper_core_at_30fps_integrates_every_keyframe_and_runs_the_closing_refinement(room320):
+    """40 frames at 30 fps (1.3 s) against a mapper whose init alone takes 1 s: frames pile up behind it.
+    With the keyframe-ranked inbox (12 frames) every frame the tracker flagged as a keyframe is mapped, the
+    mapper catches up by skipping non-keyframes, and the end-of-stream refinement runs once. The same
+    schedule with the plain evenly thinned inbox loses keyframes (the test can fail)."""
+    from fmapping.datasets import open_dataset
+
+    ds = open_dataset(room320)
+    frames, poses = _tracker_stream(ds)
+    first: dict[int, P.Pose] = {}
+    for ps in poses:
+        for pb in ps:
+            m = P.decode(pb)
+            first.setdefault(m.seq, m)
+    keyframes = {s for s, m in first.items() if m.keyframe and m.quality > 0}
+    assert len(first) == len(ds) and 5 <= len(keyframes) < len(ds) // 2, sorted(keyframes)
+
+    core, t_end = _run_mapper_at_30fps(frames, poses, capacity=12, ranked=True)
+    mapped = set(core.seq_of_fid)
+    assert keyframes <= mapped, sorted(keyframes - mapped)
+    c = core.counters
+    assert c.get("keyframes_integrated") == len(keyframes)
+    assert c.get("updates_final") == 1 and core.finished  # the closing refinement over the keyframes
+    assert c.get("frames_thinned") > 0 and c.get("dropped_frames") > 0  # it really was behind
+    assert c.get("dropped_frames_rank2") == 0
+    assert core.ack == len(ds) - 1 and not core.frames
+    assert t_end > len(ds) / FPS  # the stream ended while the mapper still had work
+
+    plain, _ = _run_mapper_at_30fps(frames, poses, capacity=12, ranked=False)
+    assert keyframes - set(plain.seq_of_fid), "the plain inbox kept every keyframe too: the scenario is too easy"
