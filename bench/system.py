@@ -158,6 +158,7 @@ class Monitor:
         self.status: dict[str, P.Status] = {}
         self.t_pub: dict[int, float] = {}  # seq -> when poses/gt (sent right before the frame) arrived
         self.tracker: dict[int, tuple[float, Optional[float], np.ndarray]] = {}  # seq -> (t, quality, c2w)
+        self.keyframes: set[int] = set()  # frames the tracker flagged as keyframes (Pose.keyframe)
         self.t_map: dict[int, float] = {}  # seq -> first mapper pose
         self.gt: dict[int, np.ndarray] = {}
         self.decode_errors = 0
@@ -188,6 +189,8 @@ class Monitor:
             elif p.source == "tracker":  # first arrival (latency), newest pose (bundle-adjusted again)
                 first = self.tracker.get(p.seq)
                 self.tracker[p.seq] = (t if first is None else first[0], p.quality, np.array(p.c2w))
+                if p.keyframe and (p.quality is None or p.quality > 0):
+                    self.keyframes.add(p.seq)
             elif p.source == "mapper":
                 self.t_map.setdefault(p.seq, t)
 
@@ -201,8 +204,8 @@ class Monitor:
 
 
 def _drops(name: str, counters: dict) -> dict:
-    keep = {"tracker": ("frames_skipped", "frames_lost"),
-            "mapper": ("frames_without_pose", "frames_skipped", "unusable_poses")}.get(name, ())
+    keep = {"tracker": ("frames_skipped", "frames_lost", "frames_skipped_behind"),
+            "mapper": ("frames_without_pose", "frames_skipped", "unusable_poses", "frames_thinned")}.get(name, ())
     return {k: int(v) for k, v in counters.items() if k.startswith("dropped_") or k in keep}
 
 
@@ -295,8 +298,7 @@ def _stats(xs) -> Optional[dict]:
 
 def summarize(fps: float, rows: list[dict], mon: Monitor, out: Path, scene: Path, t0: float, rc: int,
               wall: float) -> dict:
-    from fmapping.metrics import ate, eval_traj_files, recon_metrics
-    from fmapping.ply import read_ply
+    from fmapping.metrics import ate, eval_traj_files
 
     up = {}
     try:
@@ -326,6 +328,8 @@ def summarize(fps: float, rows: list[dict], mon: Monitor, out: Path, scene: Path
             "poses_out": len(mon.tracker), "tracked": int(tc.get("frames_tracked", 0)),
             "from_mapper": int(tc.get("poses_from_mapper", 0)), "lost": int(tc.get("frames_lost", 0)),
             "skipped": int(tc.get("frames_skipped", 0)), "dropped": int(tc.get("dropped_frames", 0)),
+            "skipped_to_keep_pace": int(tc.get("frames_skipped_behind", 0)),
+            "keyframes_flagged": len(mon.keyframes),
             "usable_poses": sum(1 for v in mon.tracker.values() if v[1] is None or v[1] > 0),
             "lag_frames_max": max((r.get("tracker_lag_frames", 0) for r in rows), default=0),
             "lag_frames_mean_during_playback":
@@ -345,6 +349,11 @@ def summarize(fps: float, rows: list[dict], mon: Monitor, out: Path, scene: Path
             "windows_behind_at_playback_end": next((r.get("windows_behind") for r in rows
                                                     if play_end is not None and r["t"] >= play_end), None),
             "latency_s_first_window_pose": _stats(map_lat),
+            "thinned_non_keyframes": int(mc.get("frames_thinned", 0)),
+            "keyframes_integrated": int(mc.get("keyframes_integrated", 0)),
+            # keyframes the tracker flagged that never reached a mapper window (no poses/mapper for them)
+            "keyframes_dropped": len(mon.keyframes - set(mon.t_map)) if mon.t_map else None,
+            "refinements_final": int(mc.get("updates_final", 0)),
         },
         "dropped": {n: _drops(n, c) for n, c in final.items()},
         "rss_mb_peak": {}, "rss_mb_end_of_playback": {},
@@ -359,6 +368,8 @@ def summarize(fps: float, rows: list[dict], mon: Monitor, out: Path, scene: Path
     done_t = next((r["t"] for r in rows if r.get("mapper_state") == "done"), None)
     s["mapper"]["done_after_playback_s"] = round(done_t - play_end, 1) if done_t is not None and play_end else None
     s["loadavg1"] = _stats([r.get("loadavg1") for r in rows])
+    if s["playback_seconds"]:
+        s["keyframes_per_s"] = round(len(mon.keyframes) / s["playback_seconds"], 2)
     # tracker ATE over its usable poses (seq = frame index: no looping)
     seqs = sorted(k for k, v in mon.tracker.items() if (v[1] is None or v[1] > 0) and k in mon.gt)
     if len(seqs) >= 3:
@@ -373,20 +384,58 @@ def summarize(fps: float, rows: list[dict], mon: Monitor, out: Path, scene: Path
             s["mapper"]["ate_sim3"] = _round(eval_traj_files(out / "traj.txt", gt_traj, "sim3")["ate"])
         except ValueError as e:
             s["mapper"]["ate_sim3"] = {"error": str(e)}
-    if (out / "map.ply").is_file():
-        t = time.perf_counter()
-        pts = read_ply(out / "map.ply").points
-        gt = read_ply(scene / "gt_visible_cloud.ply").points
-        s["map"] = _round(recon_metrics(pts, gt, threshold=0.05))
-        s["map"]["eval_seconds"] = round(time.perf_counter() - t, 1)
-        sim3 = traj_sim3(out / "traj.txt", gt_traj) if len(pts) else None
-        if sim3 is not None:  # monocular maps have their own scale and frame: score them after the Sim3
-            sc, R, tr = sim3  # that aligns the mapper's trajectory to GT (as ATE does)
-            s["map_sim3_aligned"] = _round({**recon_metrics(sc * pts @ R.T + tr, gt, threshold=0.05), "scale": sc})
-    else:
-        s["map"] = {"error": "no map.ply"}
+    s.update(map_quality(out, scene))
     s["outputs"] = sorted(p.name for p in out.iterdir() if p.is_file())
     return s
+
+
+def map_quality(out: Path, scene: Path) -> dict:
+    """``map``: OUT/map.ply against the scene's visible GT cloud (5 cm), and ``map_sim3_aligned``: the same
+    after the Sim3 that aligns OUT/traj.txt to the GT trajectory (monocular maps have their own scale)."""
+    from fmapping.metrics import recon_metrics
+    from fmapping.ply import read_ply
+
+    if not (out / "map.ply").is_file():
+        return {"map": {"error": "no map.ply"}}
+    t = time.perf_counter()
+    pts = read_ply(out / "map.ply").points
+    gt = read_ply(scene / "gt_visible_cloud.ply").points
+    q = {"map": _round(recon_metrics(pts, gt, threshold=0.05))}
+    q["map"]["eval_seconds"] = round(time.perf_counter() - t, 1)
+    sim3 = traj_sim3(out / "traj.txt", scene / "groundtruth.txt") if len(pts) else None
+    if sim3 is not None:
+        sc, R, tr = sim3
+        q["map_sim3_aligned"] = _round({**recon_metrics(sc * pts @ R.T + tr, gt, threshold=0.05), "scale": sc})
+    return q
+
+
+def run_slam_baseline(scene: Path, out: Path, mapper_cfg: dict, threads: int) -> dict:
+    """In-process ``fmapping slam`` (RGB only, the same mapper settings) on the same frames: what the live
+    system should reach when nothing is dropped."""
+    import subprocess
+
+    import yaml
+
+    from fmapping.metrics import eval_traj_files
+
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    cfg = out / "slam.yaml"
+    cfg.write_text(yaml.safe_dump({"mapper": mapper_cfg}, sort_keys=False))
+    env = dict(os.environ, OMP_NUM_THREADS=str(threads), PYTHONPATH=str(ROOT))
+    t = time.monotonic()
+    print(f"[system] fmapping slam baseline (out {out}) ...", flush=True)
+    rc = subprocess.run([sys.executable, "-m", "fmapping.cli", "slam", "--data", str(scene), "--out", str(out),
+                         "--config", str(cfg)], env=env, cwd=str(ROOT)).returncode
+    res: dict = {"rc": rc, "wall_seconds": round(time.monotonic() - t, 1)}
+    if (out / "traj.txt").is_file():
+        try:
+            res["ate_sim3"] = _round(eval_traj_files(out / "traj.txt", scene / "groundtruth.txt", "sim3")["ate"])
+        except ValueError as e:
+            res["ate_sim3"] = {"error": str(e)}
+    res.update(map_quality(out, scene))
+    return res
 
 
 def traj_sim3(est_path: Path, gt_path: Path):
@@ -461,7 +510,7 @@ def plot(results: dict, path: Path) -> None:
 
     fig, ax = plt.subplots(2, 2, figsize=(13, 8))
     for i, run in enumerate(results["runs"]):
-        cols, col, lab = run["series"], f"C{i}", f"{run['fps']:g} fps"
+        cols, col, lab = run["series"], f"C{i}", f"{run['fps']:g} fps" if run["fps"] else "paced"
         t0 = run["summary"].get("playback_started_at_s") or 0.0
         t = np.asarray(cols["t"], float) - t0
 
@@ -512,7 +561,10 @@ def make_scene(work: Path, frames: int, size: tuple[int, int], seed: int) -> Pat
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="smoke run: 24 frames at 160x120, tiny mapper, no viewer")
-    ap.add_argument("--fps", type=float, nargs="+", default=[5.0, 10.0, 30.0])
+    ap.add_argument("--fps", type=float, nargs="+", default=[0.0, 30.0],
+                    help="playback rates (0 = paced: the player waits for the mapper's acknowledgement)")
+    ap.add_argument("--no-slam-baseline", action="store_true",
+                    help="skip the in-process fmapping slam run on the same frames")
     ap.add_argument("--frames", type=int, default=120)
     ap.add_argument("--size", default="320x240")
     ap.add_argument("--seed", type=int, default=0)
@@ -552,6 +604,11 @@ def main(argv=None) -> int:
                      "quick": a.quick, "mapper": mapper_cfg, "scene": str(scene)},
         "runs": [],
     }
+    if not a.quick and not a.no_slam_baseline and a.poses == "tracker":
+        results["slam_baseline"] = run_slam_baseline(scene, work / "slam_baseline", mapper_cfg, a.threads)
+        b = results["slam_baseline"]
+        print(f"[system] fmapping slam: rc {b['rc']}, {b['wall_seconds']} s, ATE {b.get('ate_sim3')}, map after Sim3 "
+              f"{b.get('map_sim3_aligned')}", flush=True)
     for fps in a.fps:
         run = run_one(fps, scene, work / f"run_{a.poses}_fps{fps:g}", mapper_cfg, a.max_seconds, view, a.threads,
                       a.interval, a.poses)
@@ -563,8 +620,10 @@ def main(argv=None) -> int:
               f"frames / {s['tracker']['lag_s_max']} s | mapper mapped {s['mapper']['mapped']}, windows "
               f"{s['mapper']['windows']}, behind max {s['mapper']['windows_behind_max']}, dropped "
               f"{s['mapper']['dropped_inbox']} + no pose {s['mapper']['without_pose']} | RSS peak "
-              f"{s['rss_mb_peak']} | map {({k: s['map'].get(k) for k in ('accuracy_cm', 'completion_ratio')})}",
-              flush=True)
+              f"{s['rss_mb_peak']} | map {({k: s['map'].get(k) for k in ('accuracy_cm', 'completion_ratio')})}"
+              f" | keyframes flagged {s['tracker']['keyframes_flagged']}, dropped {s['mapper']['keyframes_dropped']}, "
+              f"non-keyframes thinned {s['mapper']['thinned_non_keyframes']}, tracker skipped to keep pace "
+              f"{s['tracker']['skipped_to_keep_pace']} | map after Sim3 {s.get('map_sim3_aligned')}", flush=True)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(dumps(results) + "\n")  # partial results survive an interruption
         if run["rc"] == 130:
@@ -572,7 +631,8 @@ def main(argv=None) -> int:
     results["total_seconds"] = round(time.monotonic() - t_all, 1)
     out.write_text(dumps(results) + "\n")
     plot(results, out.with_suffix(".png"))
-    print(json.dumps({f"{r['fps']:g}": {k: r["summary"][k] for k in ("tracker", "mapper", "map", "rss_mb_peak")}
+    print(json.dumps({f"{r['fps']:g}": {k: r["summary"].get(k) for k in ("tracker", "mapper", "map", "map_sim3_aligned",
+                                                                       "rss_mb_peak")}
                       for r in results["runs"]}, indent=1, default=str))
     print(f"[system] wrote {out} and {out.with_suffix('.png')} in {results['total_seconds']} s", flush=True)
     return 0 if all(r["rc"] == 0 for r in results["runs"]) else 1

@@ -73,7 +73,7 @@ def test_flooded_controls_never_evict_the_end_of_sequence_stop():
 
 def test_hostile_frames_are_refused_before_queueing_and_never_displace_real_ones(dataset):
     """Undecodable frames, frames with an implausible number and frames far too large for the
-    stream reach neither the inbox nor the core; the 32 real frames all stay queued."""
+    stream reach neither the inbox nor the core; the real frames all stay queued up to the inbox's ceiling."""
     from services.mapper.__main__ import CAPACITIES, MAX_BYTES
     from services.mapper.core import MapperCore
 
@@ -94,10 +94,11 @@ def test_hostile_frames_are_refused_before_queueing_and_never_displace_real_ones
     c = svc.counters.snapshot()
     assert c["decode_errors"] == 1000 and c["rejected_seq"] == 3000 and c["bad_input"] == 4000
     assert c.get("dropped_frames", 0) == 0 and svc.inbox.size("frames") == 1 and svc.inbox.size("poses") == 1
-    for i in range(1, 33):
+    cap = CAPACITIES["frames"]
+    for i in range(1, cap + 1):
         f = P.frame_from_dataset(dataset[i % len(dataset)], seq=i)
         s.deliver(KEYS.frames, P.encode(f))
-    assert svc.inbox.size("frames") == 32 and svc.counters.get("dropped_frames") == 1  # 33 real frames, 32 places
+    assert svc.inbox.size("frames") == cap and svc.counters.get("dropped_frames") == 1  # one real frame too many
 
 
 def test_mapper_core_refuses_implausible_frame_numbers_and_keeps_its_acknowledgement(dataset):

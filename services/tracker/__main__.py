@@ -25,6 +25,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="YAML overrides of the tracker config (fmapping.tracking TrackerConfig)")
     p.add_argument("--use-depth", action="store_true", help="reference depth from the sensor when frames carry it")
     p.add_argument("--max-buffer", type=int, default=64, help="frames waiting for a map")
+    p.add_argument("--skip-behind", type=int, default=1,
+                   help="mono: skip (answer with quality 0) a frame when this many newer ones wait, never two in a "
+                        "row, so that the poses keep pace with the camera (0 = never skip)")
     p.add_argument("--frontend", default="mono", choices=["mono", "map"],
                    help="mono: RGB-only front end from frame 0 (as fmapping slam); map: track against the "
                         "mapper's field (frames wait for the first map)")
@@ -54,13 +57,17 @@ def main(argv=None, session=None, keys=None) -> int:
     limit_blas_threads(1)  # to the other services on the same cores (fmapping.runtime)
     cfg = load_tracker_config(args.config)
     opts = TrackerServiceOptions(max_buffer=args.max_buffer, use_depth=args.use_depth, frontend=args.frontend,
-                                 anchor_source=args.anchor, state_path=args.state).validate()
-    with Service("tracker", args, capacities=CAPACITIES, max_bytes=MAX_BYTES, session=session, keys=keys) as svc:
+                                 anchor_source=args.anchor, state_path=args.state,
+                                 skip_behind=args.skip_behind).validate()
+    # frames thinned evenly when the inbox is full (a long gap loses the track; evenly spread gaps do not)
+    with Service("tracker", args, capacities=CAPACITIES, max_bytes=MAX_BYTES, session=session, keys=keys,
+                 thin=("frames",)) as svc:
         return serve(svc, cfg, opts, args)
 
 
 def serve(svc: Service, cfg, opts: TrackerServiceOptions, args) -> int:
     core = TrackerCore(cfg, opts, counters=svc.counters, on_bad_input=svc.report_bad_input)
+    core.backlog = lambda: svc.inbox.size("frames")
     keys = svc.keys
     # checked before queueing: a bad or implausible message never displaces a real one
     svc.subscribe_control()

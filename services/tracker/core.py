@@ -55,7 +55,7 @@ from __future__ import annotations
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Any, NamedTuple, Optional
+from typing import Any, Callable, NamedTuple, Optional
 
 import numpy as np
 
@@ -92,10 +92,17 @@ class TrackerServiceOptions:
     resume_tries: int = 5  # frames a restarted tracker tries to re-localise before it bootstraps anew
     # newest keyframes kept (the nearest in frame number to the first new frame is tried first)
     resume_keyframes: int = 5
+    # mono, real time: a tracked frame with at least this many newer frames waiting (here and in the shell's
+    # inbox) is answered with quality 0 instead of tracked ("frames_skipped_behind"), never two in a row and
+    # never the frame after a lost one, so that the answers keep pace with the camera (0: never skip). A
+    # keyframe is decided by tracking its frame, so a skipped frame is never one.
+    skip_behind: int = 1
 
     def validate(self) -> "TrackerServiceOptions":
         if self.frontend not in ("mono", "map"):
             raise ValueError(f"tracker frontend must be 'mono' or 'map', got {self.frontend!r}")
+        if self.skip_behind < 0:
+            raise ValueError(f"skip_behind must be >= 0, got {self.skip_behind}")
         return self
 
 
@@ -141,6 +148,8 @@ class TrackerCore(MapFrontend, ServiceCore):
         self._ref_target: Optional[int] = None  # frame to make the next reference at
         self._motion_seq = -1  # frame of the newest pose in the tracker's motion model
         self.last_track: dict = {}
+        self.backlog: Callable[[], int] = lambda: 0  # frames queued before the core (the shell's inbox)
+        self._skipped_last = False  # the previous frame was skipped to keep pace
         # saved keyframes of the process before a restart (oldest first), None once used or given up
         self.resume_state: Optional[list] = load_resume_state(self.opts.state_path) if self.opts.state_path else None
         self._saved_keyframe = -1  # newest keyframe of the state on disk
@@ -238,6 +247,7 @@ class TrackerCore(MapFrontend, ServiceCore):
         self._motion_seq = -1
         self.session = None
         self.anchors.clear()
+        self._skipped_last = False
         self.counters.inc("resets")
 
     def _set_camera(self, cam: dict) -> None:
@@ -360,6 +370,10 @@ class TrackerCore(MapFrontend, ServiceCore):
                     self._save_state()
                 continue
             self.waiting.popitem(last=False)
+            if self._keep_pace():
+                self.counters.inc("frames_skipped_behind")
+                out.append(self._skip(seq, f.timestamp))
+                continue
             ups = sess.push(seq, np.asarray(f.rgb), f.timestamp, extra_depth=self._extra_depth())
             self._count(f, sess.last)
             out += self._publish(ups)
@@ -367,6 +381,14 @@ class TrackerCore(MapFrontend, ServiceCore):
             self.counters.set("loop_closures", len(sess.frontend.loops))
         self.counters.set("waiting_frames", len(self.waiting))
         return out
+
+    def _keep_pace(self) -> bool:
+        """Skip the frame at hand (see ``TrackerServiceOptions.skip_behind``)? Called once per tracked frame."""
+        last = self.session.last
+        skip = (self.opts.skip_behind > 0 and not self._skipped_last and last is not None and not last.lost
+                and len(self.waiting) + self.backlog() >= self.opts.skip_behind)
+        self._skipped_last = skip
+        return skip
 
     def _publish(self, ups: list) -> list[Output]:
         """The session's pose updates as messages: a refined pose goes out again under its frame's number
