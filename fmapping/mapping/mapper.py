@@ -132,17 +132,24 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
             return self._run_window()
         return None
 
-    def finish(self) -> Optional[WindowStats]:
-        """Flush pending frames (init or a last window), then the closing global refinement."""
+    def finish(self, extra_iters: int = 0) -> Optional[WindowStats]:
+        """Flush pending frames (init or a last window), then the closing global refinement
+        (``final_global_iters`` plus ``extra_iters``: e.g. the window iterations a caller that fell
+        behind the stream skipped, see ``services.mapper.core``)."""
         last = None
         if not self.initialized and self._init_ids:
             last = self._run_init()
         if self._pending:
             last = self._run_window()
-        if self.initialized and self.cfg.final_global_iters > 0 and not self._finished:
-            last = self._run_final()
+        iters = self.cfg.final_global_iters + max(0, int(extra_iters))
+        if self.initialized and iters > 0 and not self._finished:
+            last = self._run_final(iters)
         self._finished = True
         return last
+
+    def window_due(self) -> bool:
+        """Would :meth:`finish` run a last window first (frames pending after the init)?"""
+        return self.initialized and bool(self._pending)
 
     def refine(self, iters: Optional[int] = None) -> Optional[WindowStats]:
         """The closing global refinement over all keyframes now (``iters``, default

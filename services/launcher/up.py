@@ -161,6 +161,9 @@ def run_up(args) -> int:
         raise ValueError(f"launcher.tracker_frontend must be 'mono' or 'map', got {opts.tracker_frontend!r}")
     mono = poses == "tracker" and opts.tracker_frontend == "mono"
     live = isinstance(data, str)  # up_data: a live camera is its camera:N string, a dataset a Path
+    # paced playback (a dataset at --fps 0): the player waits for the mapper, so nobody is behind the camera:
+    # the tracker tracks every frame and the mapper maps every frame (no keeping pace, no catching up)
+    paced = not live and not (getattr(args, "fps", None) or 0)
     mapper_cfg = with_user_box(mapper_cfg, getattr(args, "bbox", None), out)
     # errors in data or configs: before any process
     info = run_info(data, poses, mapper_cfg, tracker_cfg, opts, camera, source_options(args))
@@ -184,6 +187,7 @@ def run_up(args) -> int:
         # the map tracker tracks only once the mapper has a map
         unposed_init="yes" if poses == "tracker" and not mono else None,
         resent_frames=poses == "tracker" and not live,  # play sends a restarted tracker what it missed (resend_to)
+        behind_frames=0 if paced else None,
         config=str(mapper_cfg) if mapper_cfg else None)
     record_src = poses
     procs: dict[str, Proc] = {}
@@ -229,7 +233,7 @@ def run_up(args) -> int:
             targv = service_command(
                 "services.tracker", frontend=opts.tracker_frontend, **net("tracker"), threads=threads,
                 # a restarted tracker re-localises against its last keyframe (same world frame and scale)
-                state=str(tracker_state(out)) if mono else None,
+                state=str(tracker_state(out)) if mono else None, skip_behind=0 if paced else None,
                 config=str(tracker_cfg) if tracker_cfg else None)
             procs["tracker"] = Proc("tracker", targv, out, env)
             later.append(procs["tracker"])

@@ -61,7 +61,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "auto = source for the tracker, motion for gt / external poses")
     p.add_argument("--keyframe-every", type=int, default=5, help="motion keyframes: at least every this many frames")
     p.add_argument("--behind-frames", type=int, default=10,
-                   help="frames waiting beyond which the mapper maps keyframes only and windows take more frames")
+                   help="frames waiting beyond which the mapper maps keyframes only and windows take more frames "
+                        "(0 = never: paced playback)")
     p.add_argument("--device", default=None, help="torch device (default: the config's, 'auto')")
     p.add_argument("--threads", type=int, default=0,
                    help="torch threads (0 = auto: half the CPUs this process may use, at least 1)")

@@ -80,7 +80,11 @@ class MapperServiceOptions:
     keyframe_every: int = 5  # motion rule: at least every this many frames ...
     keyframe_move_m: float = 0.05  # ... or when the camera moved this far / turned this much since the last one
     keyframe_turn_deg: float = 5.0
-    behind_frames: int = 10  # frames waiting beyond which non-keyframes are skipped and windows take more frames
+    # frames waiting beyond which non-keyframes are skipped and windows take more frames (0: never; paced playback)
+    behind_frames: int = 10
+    # the closing refinement also runs the window iterations that catching up skipped (frames thinned, windows
+    # over more frames), so that the final map matches a paced run's; at most this many extra iterations
+    max_owed_iters: int = 2000
     publish_mapper_poses: bool = True
     write_mesh: bool = True
     mesh_resolution: int = 96  # marching-cubes grid per axis
@@ -100,8 +104,8 @@ class MapperServiceOptions:
             self.keyframes = "source" if self.pose_source == "tracker" else "motion"
         if self.keyframes not in ("source", "motion"):
             raise ValueError(f"keyframes must be auto, source or motion, got {self.keyframes!r}")
-        if self.keyframe_every < 1 or self.behind_frames < 1:
-            raise ValueError("keyframe_every and behind_frames must be >= 1")
+        if self.keyframe_every < 1 or self.behind_frames < 0:
+            raise ValueError("keyframe_every must be >= 1 and behind_frames >= 0")
         return self
 
 
@@ -154,6 +158,7 @@ class MapperCore(ServiceCore):
         self.checkpoint_path = Path(ck) if ck else None
         self.book = book if book is not None else book_for(self.opts)  # keyframe flags (shared with the inbox)
         self.backlog: Callable[[], int] = lambda: 0  # frames queued before the core (the shell's inbox)
+        self.owed_iters = 0.0  # window iterations a paced run would have spent on the frames since the init, unspent
 
     # ------------------------------------------------------------ inputs
     @property
@@ -346,6 +351,7 @@ class MapperCore(ServiceCore):
                     and not self.book.is_keyframe(seq):
                 self.frames.popitem(last=False)  # catching up: keyframes only
                 self.counters.inc("frames_thinned")
+                self._owe_frame()
                 self.last_seq = max(self.last_seq, seq)
                 continue
             self.frames.popitem(last=False)
@@ -360,10 +366,17 @@ class MapperCore(ServiceCore):
 
     def behind(self) -> bool:
         """More than ``behind_frames`` frames wait (here and in the shell's inbox): catch up."""
-        return len(self.frames) + self.backlog() > self.opts.behind_frames
+        n = self.opts.behind_frames
+        return n > 0 and len(self.frames) + self.backlog() > n
+
+    def _owe_frame(self) -> None:
+        """A frame after the init was integrated or thinned: a paced run spends this many window iterations on it."""
+        self.owed_iters += self.cfg.iters_per_window / self.cfg.new_frames_per_window
 
     def _add(self, f: P.Frame, pose: Optional[P.Pose], defer: bool = False) -> list[Output]:
         self._ensure_mapper()
+        if self.mapper.initialized:
+            self._owe_frame()
         t0 = time.perf_counter()
         try:
             stats = self.mapper.add_frame(np.array(f.rgb), None if pose is None else np.array(pose.c2w),
@@ -389,6 +402,8 @@ class MapperCore(ServiceCore):
         return self._after_update(stats)
 
     def _after_update(self, stats, points: bool = True) -> list[Output]:
+        if stats.kind == "window":
+            self.owed_iters -= stats.iterations
         self.windows += 1
         self.counters.set("windows", self.windows)
         self.counters.inc(f"updates_{stats.kind}")
@@ -438,7 +453,10 @@ class MapperCore(ServiceCore):
             self.last_seq = max(self.last_seq, max(self.frames))
             self.frames.clear()
         if self.mapper is not None:
-            stats = self.mapper.finish()
+            pending = self.cfg.iters_per_window if self.mapper.window_due() else 0  # finish runs that window
+            extra = int(min(self.opts.max_owed_iters, max(0.0, round(self.owed_iters - pending))))
+            self.counters.set("closing_extra_iters", extra)
+            stats = self.mapper.finish(extra_iters=extra)
             if stats is not None:
                 out += self._after_update(stats, points=False)
         self.finished = True
@@ -576,7 +594,8 @@ class MapperCore(ServiceCore):
             "mapper": self.mapper.state_dict(),
             "service": {"seq_of_fid": list(self.seq_of_fid), "last_seq": int(self.last_seq),
                         "version": int(self.version), "windows": int(self.windows),
-                        "camera": dict(self.camera_dict), "pose_source": self.opts.pose_source},
+                        "camera": dict(self.camera_dict), "pose_source": self.opts.pose_source,
+                        "owed_iters": float(self.owed_iters)},
         }
         with atomic_open(path, fsync=True, fsync_folder=True) as fh:
             torch.save(state, fh)
@@ -613,6 +632,7 @@ class MapperCore(ServiceCore):
         self.last_seq = int(svc["last_seq"])
         self.version = int(svc["version"])
         self.windows = int(svc["windows"])
+        self.owed_iters = float(svc.get("owed_iters", 0.0))
         self.resumed_from = str(path)
         self.counters.set("resumed_at_seq", self.last_seq)
         self.counters.set("resumed_windows", self.windows)
