@@ -142,6 +142,7 @@ def tum_camera_arg(root: Path) -> "str | None":
 def _timing(ms) -> dict:
     ms = np.asarray(ms, np.float64)
     return {"ms_min": float(ms.min()), "ms_median": float(np.median(ms)), "fps_median": float(1000 / np.median(ms)),
+            "ms_p95": float(np.percentile(ms, 95)), "fps_p95": float(1000 / np.percentile(ms, 95)),
             "ms_mean": float(ms.mean()), "fps_mean": float(1000 / ms.mean()), "frames": int(len(ms))}
 
 
@@ -295,17 +296,23 @@ def run_mono(frames, camera, anchor_position: bool = False, cfg=None, poses_out:
     if not fe.initialized:
         return {"error": f"bootstrap failed after {i} frames"}
     est.update(out)
+    kf_ms = []
     for j in range(i, len(frames)):
         r = fe.track(j, frames[j].rgb)
         ms.append(r.ms)
         est[j] = r.c2w
         lost += r.lost
+        if fe.is_keyframe(j):
+            kf_ms.append(r.ms)
     est.update(fe.poses())
     ids = sorted(est)
     if poses_out is not None and ids == list(range(len(frames))):
         poses_out["mono"] = np.stack([est[k] for k in ids])
     return {**_timing(ms), "lost": int(lost), "bootstrap": fe.init_info, "bootstrap_ms_total": boot_ms,
             "ba_ms_median": float(np.median([b["ms"] for b in fe.ba_stats])) if fe.ba_stats else None,
+            # keyframe frames (their BA / triangulation on the frame path) and the others
+            "keyframe_frames": len(kf_ms), "keyframe_ms_median": float(np.median(kf_ms)) if kf_ms else None,
+            "non_keyframe_ms_p95": float(np.percentile([m for m in ms if m not in kf_ms] or [0.0], 95)),
             "reinit": list(fe.reinits),
             "ate": _ate([est[k] for k in ids], [frames[k].c2w for k in ids])}
 

@@ -82,8 +82,9 @@ class MapperServiceOptions:
     keyframe_turn_deg: float = 5.0
     # frames waiting beyond which non-keyframes are skipped and windows take more frames (0: never; paced playback)
     behind_frames: int = 10
-    # the closing refinement also runs the window iterations that catching up skipped (frames thinned, windows
-    # over more frames), so that the final map matches a paced run's; at most this many extra iterations
+    # the closing refinement also runs the window iterations a paced run would have spent on the frames since the
+    # init and this run did not (frames thinned or skipped, windows over more frames), so that the final map matches
+    # a paced run's; at most this many extra iterations
     max_owed_iters: int = 2000
     publish_mapper_poses: bool = True
     write_mesh: bool = True
@@ -158,7 +159,8 @@ class MapperCore(ServiceCore):
         self.checkpoint_path = Path(ck) if ck else None
         self.book = book if book is not None else book_for(self.opts)  # keyframe flags (shared with the inbox)
         self.backlog: Callable[[], int] = lambda: 0  # frames queued before the core (the shell's inbox)
-        self.owed_iters = 0.0  # window iterations a paced run would have spent on the frames since the init, unspent
+        self.init_seq: Optional[int] = None  # the newest frame consumed when the init stage ran
+        self.window_iters = 0  # iterations of the windows since
 
     # ------------------------------------------------------------ inputs
     @property
@@ -351,7 +353,6 @@ class MapperCore(ServiceCore):
                     and not self.book.is_keyframe(seq):
                 self.frames.popitem(last=False)  # catching up: keyframes only
                 self.counters.inc("frames_thinned")
-                self._owe_frame()
                 self.last_seq = max(self.last_seq, seq)
                 continue
             self.frames.popitem(last=False)
@@ -369,14 +370,16 @@ class MapperCore(ServiceCore):
         n = self.opts.behind_frames
         return n > 0 and len(self.frames) + self.backlog() > n
 
-    def _owe_frame(self) -> None:
-        """A frame after the init was integrated or thinned: a paced run spends this many window iterations on it."""
-        self.owed_iters += self.cfg.iters_per_window / self.cfg.new_frames_per_window
+    def owed_iters(self) -> float:
+        """Window iterations a paced run spends on the frames consumed since the init (``iters_per_window`` per
+        ``new_frames_per_window`` frames), minus those this run spent: what catching up skipped."""
+        if self.init_seq is None:
+            return 0.0
+        frames = self.last_seq - self.init_seq
+        return frames * self.cfg.iters_per_window / self.cfg.new_frames_per_window - self.window_iters
 
     def _add(self, f: P.Frame, pose: Optional[P.Pose], defer: bool = False) -> list[Output]:
         self._ensure_mapper()
-        if self.mapper.initialized:
-            self._owe_frame()
         t0 = time.perf_counter()
         try:
             stats = self.mapper.add_frame(np.array(f.rgb), None if pose is None else np.array(pose.c2w),
@@ -403,7 +406,9 @@ class MapperCore(ServiceCore):
 
     def _after_update(self, stats, points: bool = True) -> list[Output]:
         if stats.kind == "window":
-            self.owed_iters -= stats.iterations
+            self.window_iters += stats.iterations
+        elif stats.kind == "init":
+            self.init_seq = self.last_seq
         self.windows += 1
         self.counters.set("windows", self.windows)
         self.counters.inc(f"updates_{stats.kind}")
@@ -454,7 +459,7 @@ class MapperCore(ServiceCore):
             self.frames.clear()
         if self.mapper is not None:
             pending = self.cfg.iters_per_window if self.mapper.window_due() else 0  # finish runs that window
-            extra = int(min(self.opts.max_owed_iters, max(0.0, round(self.owed_iters - pending))))
+            extra = int(min(self.opts.max_owed_iters, max(0.0, round(self.owed_iters() - pending))))
             self.counters.set("closing_extra_iters", extra)
             stats = self.mapper.finish(extra_iters=extra)
             if stats is not None:
@@ -595,7 +600,7 @@ class MapperCore(ServiceCore):
             "service": {"seq_of_fid": list(self.seq_of_fid), "last_seq": int(self.last_seq),
                         "version": int(self.version), "windows": int(self.windows),
                         "camera": dict(self.camera_dict), "pose_source": self.opts.pose_source,
-                        "owed_iters": float(self.owed_iters)},
+                        "init_seq": self.init_seq, "window_iters": int(self.window_iters)},
         }
         with atomic_open(path, fsync=True, fsync_folder=True) as fh:
             torch.save(state, fh)
@@ -632,7 +637,8 @@ class MapperCore(ServiceCore):
         self.last_seq = int(svc["last_seq"])
         self.version = int(svc["version"])
         self.windows = int(svc["windows"])
-        self.owed_iters = float(svc.get("owed_iters", 0.0))
+        self.init_seq = None if svc.get("init_seq") is None else int(svc["init_seq"])
+        self.window_iters = int(svc.get("window_iters", 0))
         self.resumed_from = str(path)
         self.counters.set("resumed_at_seq", self.last_seq)
         self.counters.set("resumed_windows", self.windows)
