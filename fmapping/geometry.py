@@ -278,8 +278,14 @@ def scale_about(c2w: np.ndarray, center: np.ndarray, s: float) -> np.ndarray:
     return out
 
 
+def rotation_angle_np(r: np.ndarray) -> float:
+    """Angle in radians of one rotation matrix (3, 3): ``atan2(|vee(R - R^T)| / 2, (tr R - 1) / 2)``, exact
+    near 0 and pi alike (the same as :func:`rotation_angle`, tested against it; no torch for one matrix)."""
+    w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / 2.0
+    return float(math.atan2(float(np.linalg.norm(w)), (float(np.trace(r)) - 1.0) / 2.0))
+
+
 def pose_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """(translation metres, rotation degrees) of ``inv(a) @ b``."""
     d = inv_pose(a) @ b
-    ang = float(rotation_angle(torch.as_tensor(d[:3, :3])))
-    return float(np.linalg.norm(d[:3, 3])), math.degrees(ang)
+    return float(np.linalg.norm(d[:3, 3])), math.degrees(rotation_angle_np(d[:3, :3]))

@@ -139,3 +139,26 @@ def test_orthonormalize_projects_to_rotation():
     np.testing.assert_allclose(out[:3, :3] @ out[:3, :3].T, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(out[:3, :3], t[:3, :3], atol=2e-3)
     np.testing.assert_allclose(g.inv_pose(out) @ out, np.eye(4), atol=1e-12)
+
+
+def test_rotation_angle_np_matches_the_torch_angle_from_zero_to_pi():
+    """The one-matrix numpy angle (pose_distance's) against the batched torch one, including angles at
+    1e-6 rad and within 1e-4 of pi, where an arccos of the trace would lose digits."""
+    import math
+
+    from fmapping.geometry import pose_distance, rotation_angle, rotation_angle_np, se3_exp_np
+
+    rng = np.random.default_rng(0)
+    angles = np.concatenate([[1e-6, 1e-3, math.pi - 1e-4, math.pi - 1e-2], rng.uniform(0, math.pi, 40)])
+    for ang in angles:
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        r = se3_exp_np(np.concatenate([np.zeros(3), axis * ang]))[:3, :3]
+        assert abs(rotation_angle_np(r) - ang) < 1e-9
+        assert abs(rotation_angle_np(r) - float(rotation_angle(torch.as_tensor(r)))) < 1e-6
+    a = se3_exp_np(np.array([0.1, -0.2, 0.3, 0.2, 0.1, -0.3]))
+    step = se3_exp_np(np.array([0.0, 0.0, 0.0, 0.0, math.radians(7.0), 0.0]))
+    step[:3, 3] = [0.0, 0.0, 0.5]
+    b = a @ step
+    dt, dr = pose_distance(a, b)
+    assert abs(dt - 0.5) < 1e-12 and abs(dr - 7.0) < 1e-9
