@@ -354,6 +354,8 @@ def summarize(fps: float, rows: list[dict], mon: Monitor, out: Path, scene: Path
             # keyframes the tracker flagged that never reached a mapper window (no poses/mapper for them)
             "keyframes_dropped": len(mon.keyframes - set(mon.t_map)) if mon.t_map else None,
             "refinements_final": int(mc.get("updates_final", 0)),
+            "keyframes_evicted_from_inbox": int(mc.get("dropped_frames_rank2", 0)),  # any source, GT poses too
+            "closing_extra_iters": int(mc.get("closing_extra_iters", 0)),
         },
         "dropped": {n: _drops(n, c) for n, c in final.items()},
         "rss_mb_peak": {}, "rss_mb_end_of_playback": {},
