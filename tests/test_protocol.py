@@ -234,3 +234,15 @@ def test_frame_from_dataset_frame_cleans_depth():
     back = P.decode(P.encode(f))
     assert back.depth[0, 0] == 0 and back.depth[1, 1] == 0 and back.depth[2, 2] == 1
     assert P.camera_of(back) == cam
+
+
+def test_pose_keyframe_flag_round_trips_defaults_to_false_and_must_be_a_bool():
+    p = P.Pose(seq=3, timestamp=0.1, c2w=np.eye(4), source="tracker", quality=0.5, keyframe=True)
+    assert P.decode(P.encode(p)).keyframe is True
+    raw = msgpack.unpackb(P.encode(p), raw=False)
+    del raw["keyframe"]  # a producer of before the flag
+    assert P.decode(msgpack.packb(raw, use_bin_type=True)).keyframe is False
+    raw["keyframe"] = 1
+    with pytest.raises(P.ProtocolError, match="keyframe"):
+        P.decode(msgpack.packb(raw, use_bin_type=True))
+    assert P.decode(P.encode(P.Control("refine", {"iters": 5}))).command == "refine"

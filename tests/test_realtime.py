@@ -183,3 +183,40 @@ def test_tracker_core_behind_the_camera_skips_every_other_frame_at_most_and_keep
     assert {s for s, m in first.items() if m.keyframe} <= set(tracked)
     r = ate(np.stack([first[s].c2w for s in tracked]), np.stack([ds[s].c2w for s in tracked]), "sim3")
     assert r["rmse_m"] < 0.01, r
+
+
+def test_fmapping_up_paced_playback_neither_skips_nor_thins_and_fixed_rate_does(scene, tmp_path, monkeypatch):
+    """Paced playback (``--fps 0``: the player waits for the mapper) asks the tracker to track every frame
+    (``--skip-behind 0``) and the mapper to map every frame (``--behind-frames 0``); at a fixed rate both
+    keep their real-time defaults."""
+    from fakes import fake_up
+    from services.cli import main
+
+    for fps, paced in (("0", True), ("30", False)):
+        started = fake_up(monkeypatch)
+        assert main(["up", "--data", str(scene), "--poses", "tracker", "--fps", fps, "--view", "save", "--insecure",
+                     "--out", str(tmp_path / f"up{fps}")]) == 0
+        tracker, mapper = started["tracker"], started["mapper"]
+        assert ("--skip-behind" in tracker and tracker[tracker.index("--skip-behind") + 1] == "0") == paced
+        assert ("--behind-frames" in mapper and mapper[mapper.index("--behind-frames") + 1] == "0") == paced
+
+
+def test_mapper_core_refines_on_request_and_goes_on(dataset):
+    """``Control(refine)``: the global refinement over the keyframes now; frames still come and the end of
+    the stream still runs its own. A refine before the map exists, or with a bad iteration count, does
+    nothing (the latter counted as bad input)."""
+    from service_helpers import feed
+    from services.mapper.core import MapperCore, MapperServiceOptions
+
+    core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt", points_interval=1e9, checkpoint_every=0))
+    assert core.apply(P.Control("refine")) == [] and core.counters.get("refinements") == 0
+    feed(core, dataset, range(8))
+    it = core.mapper.stats()["iterations"]
+    out = core.apply(P.Control("refine", {"iters": 3}))
+    assert core.counters.get("refinements") == 1 and [c for c, _ in out].count("field") == 1
+    assert core.mapper.stats()["iterations"] == it + 3 and not core.finished
+    assert core.apply(P.Control("refine", {"iters": -1})) == [] and core.counters.get("rejected_controls") == 1
+    feed(core, dataset, range(8, 12))
+    assert core.ack == 11
+    core.apply(P.Control("stop", {"reason": "end"}))
+    assert core.finished and core.counters.get("updates_final") == 2  # the one asked for and the closing one
