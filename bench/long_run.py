@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import sys
 import tempfile
 import time
@@ -132,7 +133,10 @@ def main(argv=None) -> int:
            "settings": {"data": str(data), "max_frames": a.max_frames, "threads": a.threads},
            "rss_mb_start": round(rss0, 1), "rss_mb_at_frame_200": at200, "rss_mb_end": end,
            "rss_growth_from_frame_200_pct": round(100 * (end - at200) / at200, 1) if at200 and end else None,
-           "rss_mb_peak": max((r["rss_mb"] for r in rows), default=None),
+           "rss_mb_peak_at_windows": max((r["rss_mb"] for r in rows), default=None),
+           # the process's high-water mark, the closing refinement and the export (map.ply, mesh.ply) included
+           "rss_mb_high_water": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
+           "rss_mb_after_export": round(rss_mb(), 1),
            "groups": groups, "summary": stats.get("summary"), "windows": rows,
            "seconds": round(time.perf_counter() - t0, 1)}
     for g in groups:
@@ -140,7 +144,8 @@ def main(argv=None) -> int:
               f"min {g['window_s_min']:.2f} s, RSS max {g['rss_mb_max']:.0f} MB, mapper images "
               f"{g['mapper_image_mb']} MB", flush=True)
     print(f"[long] RSS at frame 200 {at200} MB, at the end {end} MB ({res['rss_growth_from_frame_200_pct']} %), "
-          f"peak {res['rss_mb_peak']} MB", flush=True)
+          f"peak at windows {res['rss_mb_peak_at_windows']} MB, high-water mark {res['rss_mb_high_water']} MB (export "
+          f"included)", flush=True)
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=1, default=str) + "\n")
