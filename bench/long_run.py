@@ -44,7 +44,7 @@ def holdings(run) -> dict:
     m = run.mapper
     if m is not None:
         out["mapper_images"] = len(m._images)
-        out["mapper_image_mb"] = round(sum(t.numel() * t.element_size() for t in m._images.values()) / 2 ** 20, 1)
+        out["mapper_image_mb"] = round(m._images.nbytes() / 2 ** 20, 1)
         out["mapper_keyframes"] = len(m.keyframe_ids())
         out["mapper_frames"] = len(m._poses)
         if m._sparse is not None:

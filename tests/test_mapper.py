@@ -263,3 +263,46 @@ def test_exposure_compensation_recovers_known_gain_and_offset():
     assert np.mean(err) < 0.7 * np.mean(plain), (np.mean(err), np.mean(plain))
     off = Mapper(tiny_config(exposure=False), cam)
     assert off.exposure(3) == (pytest.approx(np.ones(3)), pytest.approx(np.zeros(3)))
+
+
+def test_image_store_keeps_keyframes_losslessly_compressed_and_decodes_them_on_use(dataset):
+    """Keyframes beyond the local window are kept as PNG: the very pixels come back (lossless), they take
+    fewer bytes than raw, decoded ones stay in a bounded cache, and a state dict round-trips either kind."""
+    import torch
+
+    from fmapping.mapping.image_store import ImageStore
+
+    imgs = {i: torch.from_numpy(np.ascontiguousarray(dataset[i].rgb)) for i in range(6)}
+    st = ImageStore(cache=2)
+    for i, im in imgs.items():
+        st[i] = im
+    for i in range(4):
+        st.compress(i)
+    assert [st.is_compressed(i) for i in range(6)] == [True] * 4 + [False] * 2 and len(st) == 6
+    assert st.nbytes() < sum(t.numel() for t in imgs.values())
+    for i in range(6):
+        assert torch.equal(st[i], imgs[i])
+    assert len(st._cache) == 2  # the two most recently decoded
+    st2 = ImageStore()
+    st2.load_state_dict(st.state_dict())
+    assert all(torch.equal(st2[i], imgs[i]) for i in range(6)) and st2.is_compressed(0) and not st2.is_compressed(5)
+    assert torch.equal(st.pop(1), imgs[1]) and 1 not in st and st.pop(1) is None
+    old = ImageStore()
+    old.load_state_dict({3: imgs[3]})  # a checkpoint of before the store: a plain map
+    assert torch.equal(old[3], imgs[3])
+
+
+def test_mapper_compresses_keyframe_images_beyond_the_local_window(dataset):
+    from service_helpers import small_cfg
+
+    cfg = small_cfg()
+    m = Mapper(cfg, dataset.camera)
+    for i in range(12):
+        f = dataset[i]
+        m.add_frame(f.rgb, f.c2w, f.timestamp)
+    kfs, local = m.keyframe_ids(), set(m._local)
+    beyond = [k for k in kfs if k not in local]
+    assert beyond and all(m._images.is_compressed(k) for k in beyond)
+    assert not any(m._images.is_compressed(k) for k in local)
+    for k in beyond:
+        np.testing.assert_array_equal(m.keyframe_image(k), dataset[k].rgb)

@@ -27,6 +27,7 @@ from fmapping.mapping.config import MapperConfig
 from fmapping.mapping.optimisation import OptimisationStep
 from fmapping.mapping.scene_box import aabb_from_depth, aabb_from_poses, points_box
 from fmapping.mapping.state_io import MapperStateIO
+from fmapping.mapping.image_store import ImageStore
 from fmapping.mapping.window_schedule import WindowSchedule, WindowStats
 from fmapping.sparse_points import TrackTriangulator
 
@@ -59,7 +60,7 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
         self._pose_corr: Optional[torch.nn.Parameter] = None
         self._gen = torch.Generator().manual_seed(int(cfg.seed))
         # frames
-        self._images: dict[int, Tensor] = {}  # uint8 (H, W, 3), kept for window / keyframes
+        self._images = ImageStore()  # uint8 (H, W, 3) of the window frames (raw) and keyframes (PNG beyond the window)
         self._depths: dict[int, Tensor] = {}
         self._poses: dict[int, Tensor] = {}  # float64 (4, 4) c2w of every frame seen (refined at init)
         self._timestamps: dict[int, float] = {}

@@ -29,7 +29,7 @@ class MapperStateIO:
                                                       for k, v in self.field.state_dict().items()},
             "optimizer": None if self._opt is None else _cpu_tree(self._opt.state_dict()),
             "pose_corr": None if self._pose_corr is None else self._pose_corr.detach().cpu().clone(),
-            "images": {int(i): im.clone() for i, im in self._images.items()},
+            "images": self._images.state_dict(),
             "depths": {int(i): dp.clone() for i, dp in self._depths.items()},
             "poses": {int(i): p.clone() for i, p in self._poses.items()},
             "timestamps": {int(i): float(t) for i, t in self._timestamps.items()},
@@ -59,7 +59,7 @@ class MapperStateIO:
         if cam != self.camera:
             raise ValueError(f"Mapper.load_state_dict: camera differs ({cam} vs {self.camera})")
         self._aabb_given = None if d["aabb_given"] is None else d["aabb_given"].clone()
-        self._images = {int(i): im.clone() for i, im in d["images"].items()}
+        self._images.load_state_dict(d["images"])
         self._depths = {int(i): dp.clone() for i, dp in d["depths"].items()}
         self._poses = {int(i): p.clone().to(torch.float64) for i, p in d["poses"].items()}
         self._timestamps = {int(i): float(t) for i, t in d["timestamps"].items()}

@@ -116,7 +116,13 @@ class WindowSchedule:
         return self.frame_number(b) - self.frame_number(a)
 
     def _drop_image_if_unused(self, fid: int) -> None:
-        if fid not in self._local and fid not in self._keyframes and fid not in self._pending:
+        """A frame out of the working set (local window, pending): a keyframe's image is kept compressed,
+        any other's goes."""
+        if fid in self._local or fid in self._pending:
+            return
+        if fid in self._keyframes:
+            self._images.compress(fid)
+        else:
             self._images.pop(fid, None)
             self._depths.pop(fid, None)
 
