@@ -359,6 +359,21 @@ def system_table(name: str) -> str:
                "after Sim3: compl. ratio", "acc. cm", "ATE Sim3 cm"], rows)]) + "\n"
 
 
+def long_run_section() -> str:
+    d = load("long_run")
+    if d is None:
+        return "### Long run (`bench/long_run.py`)\n\nnot run\n"
+    rows = [[g["windows"], g["frames"], fmt(g["window_s_min"]), fmt(g["window_s_median"]), fmt(g["rss_mb_max"], 0),
+             fmt(g.get("mapper_image_mb"), 1)] for g in d.get("groups", [])]
+    return "\n".join([
+        "### Long run (`bench/long_run.py` -> `long_run.json`)\n",
+        f"In-process `fmapping slam` (RGB only) on `{Path(d['settings']['data']).name}`: window time and resident "
+        f"memory per group of windows. RSS {fmt(d.get('rss_mb_at_frame_200'), 0)} MB at frame 200, "
+        f"{fmt(d.get('rss_mb_end'), 0)} MB at the end ({fmt(d.get('rss_growth_from_frame_200_pct'), 1)} %), high-water "
+        f"mark {fmt(d.get('rss_mb_high_water'), 0)} MB (export included).\n",
+        table(["windows", "frames", "window s min", "window s median", "RSS max MB", "mapper images MB"], rows)]) + "\n"
+
+
 def faults_section() -> str:
     d = load("faults")
     if d is None:
@@ -381,6 +396,7 @@ def build() -> str:
              "machine: the 2-core machines differ from run to run). `make bench` re-runs everything. "
              "The CPU is shared and its speed swings 3-4x: timings are min / median.\n",
              mapping_section(), tracking_section(), slam_section(), real_section(), system_section(),
+             long_run_section(),
              faults_section(), transport_section(),
              field_section()]
     pngs = sorted(p.name for p in RESULTS.glob("*.png"))

@@ -1,9 +1,10 @@
-"""System benchmark: the multi-process demo (``fmapping up``) at 5, 10 and 30 fps playback.
+"""System benchmark: the multi-process demo (``fmapping up``) paced by its consumers and at 30 fps playback.
 
-    python bench/system.py                  # 120 frames at 320x240, playback 5, 10 and 30 fps
+    python bench/system.py                  # in-process fmapping slam, then fmapping up paced and at 30 fps,
+                                            # 200 frames at 320x240
+    python bench/system.py --poses gt --fps 0 10 --out bench/results/system_gt.json   # GT poses, paced and 10 fps
     python bench/system.py --quick          # smoke check: 24 frames at 160x120, tiny mapper (writes to --work)
     python bench/system.py --fps 10 --frames 200 --max-seconds 300
-    python bench/system.py --poses gt --out /tmp/system_gt.json    # mapper on GT poses, no tracker
     python bench/system.py --init-iters 25 --max-seconds 240       # shorter init (does not converge)
 
 One synthetic scene (``fmapping.synthetic.generate_scene``) is generated once and reused.
@@ -567,7 +568,7 @@ def main(argv=None) -> int:
                     help="playback rates (0 = paced: the player waits for the mapper's acknowledgement)")
     ap.add_argument("--no-slam-baseline", action="store_true",
                     help="skip the in-process fmapping slam run on the same frames")
-    ap.add_argument("--frames", type=int, default=120)
+    ap.add_argument("--frames", type=int, default=200)
     ap.add_argument("--size", default="320x240")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--max-seconds", type=float, default=420.0, help="time-out of one run (the launcher stops it)")
