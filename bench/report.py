@@ -320,6 +320,13 @@ def _rmse_cm(ate) -> Optional[float]:
     return 100.0 * ate["rmse_m"] if isinstance(ate, dict) and "rmse_m" in ate else None
 
 
+def _keyframes(tr: dict, mp: dict) -> str:
+    """Keyframes flagged / dropped: the tracker's, or (GT poses) those the mapper flagged itself / evicted."""
+    if tr.get("keyframes_flagged"):
+        return f"{tr['keyframes_flagged']} / {mp.get('keyframes_dropped', '-')}"
+    return f"{mp.get('keyframes_integrated', '-')} (mapper's) / {mp.get('keyframes_evicted_from_inbox', 0)}"
+
+
 def system_table(name: str) -> str:
     d = load(name)
     st = d.get("settings", {})
@@ -334,7 +341,7 @@ def system_table(name: str) -> str:
         rows.append([f"{fps:g} fps" if fps else "paced by consumers", fmt(r.get("wall_seconds"), 0),
                      f"{tr.get('tracked', '-')} / {tr.get('lost', '-')} / {tr.get('skipped_to_keep_pace', '-')}",
                      f"{fmt(lat.get('median'), 2)} / {fmt(lat.get('p95'), 2)}",
-                     f"{tr.get('keyframes_flagged', '-')} / {mp.get('keyframes_dropped', '-')}",
+                     _keyframes(tr, mp),
                      f"{mp.get('mapped', '-')} / {mp.get('windows', '-')} / {mp.get('thinned_non_keyframes', '-')} / "
                      f"{mp.get('dropped_inbox', '-')}", str(mp.get("refinements_final", "-")),
                      f"{fmt(rss.get('mapper'), 0)} / {fmt(rss.get('tracker'), 0)}",
@@ -352,7 +359,7 @@ def system_table(name: str) -> str:
         f"`fmapping up` on a synthetic room ({st.get('frames')} frames {st.get('size')}, poses from the "
         f"{st.get('poses')}), all services as OS processes on this machine, sampled every "
         f"{st.get('interval')} s over a monitoring zenoh session. Keyframes dropped: flagged by the tracker "
-        "but never in a mapper window.\n",
+        "but never in a mapper window (GT poses: the keyframes the mapper flagged by motion, mapped / evicted).\n",
         table(["playback", "wall s", "tracker tracked / lost / skipped to keep pace", "pose latency s median / p95",
                "keyframes flagged / dropped", "mapper frames / windows / thinned / inbox-dropped",
                "closing refinements", "RSS peak MB mapper / tracker", "map compl. ratio",
