@@ -228,8 +228,8 @@ def test_mapper_core_stop_request_cancels_the_final_export_not_the_quick_one(dat
     stop.clear()
     closing = core.mapper.finish
 
-    def closing_then_signal():
-        st = closing()
+    def closing_then_signal(**kw):
+        st = closing(**kw)
         stop.append("SIGTERM")
         return st
 
