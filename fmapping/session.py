@@ -84,10 +84,12 @@ class PoseSession:
         self.bootstrapped: list[int] = []  # the frames the successful bootstrap gave poses to
         self.failed = False  # the bootstrap failed and is not restarted (``restart_failed_bootstrap`` off)
         self._held: list[PoseUpdate] = []
+        self._merges_seen = 0  # the front end's background BAs merged, when last republished
         self._new_frontend()
 
     def _new_frontend(self) -> None:
         self.frontend = MonoFrontend(self.camera, self.tracker_cfg, self.mono_cfg)
+        self._merges_seen = 0
         self.c2w0: Optional[np.ndarray] = None  # world pose of the bootstrap's first frame
         self._first_anchored: Optional[np.ndarray] = None
         self._boot: dict[int, float] = {}  # frames held by the bootstrap -> timestamp
@@ -128,7 +130,8 @@ class PoseSession:
         else:
             out += self._give(PoseUpdate(index, timestamp, np.array(r.c2w), float(max(r.inlier_ratio, 1e-6)),
                                          keyframe=self.frontend.is_keyframe(index)))
-        if r.need_keyframe and not r.lost and self.cfg.republish:
+        merged = self.frontend.ba_merges != self._merges_seen  # a background BA (ba_thread) moved poses
+        if (r.need_keyframe or merged) and not r.lost and self.cfg.republish:
             out += self._refined()
         return out
 
@@ -203,6 +206,7 @@ class PoseSession:
 
     def _refined(self) -> list[PoseUpdate]:
         refined = self.frontend.refined_poses()
+        self._merges_seen = self.frontend.ba_merges
         was = {s: self.published[s].c2w for s in refined if s in self.published}
         moved = moved_poses(was, refined, self.cfg.republish_min_m, self.cfg.republish_min_deg)
         out = []
@@ -213,8 +217,13 @@ class PoseSession:
         return out
 
     def finish(self, why: str = "the sequence ended before it") -> list[PoseUpdate]:
-        """The stream ended: the held poses leave (the late anchor is given up, for ``why``)."""
-        return self.release(settle=why)
+        """The stream ended: a bundle adjustment still in the worker (``MonoConfig.ba_thread``) is
+        merged and the poses it moved leave again, then the held poses leave (the late anchor is given
+        up, for ``why``)."""
+        out: list[PoseUpdate] = []
+        if self.frontend.initialized and self.frontend.flush_ba() and self.cfg.republish:
+            out += self._refined()
+        return out + self.release(settle=why)
 
 
 class SlamSession:

@@ -187,8 +187,8 @@ def test_tracker_core_behind_the_camera_skips_every_other_frame_at_most_and_keep
 
 def test_fmapping_up_paced_playback_neither_skips_nor_thins_and_fixed_rate_does(scene, tmp_path, monkeypatch):
     """Paced playback (``--fps 0``: the player waits for the mapper) asks the tracker to track every frame
-    (``--skip-behind 0``) and the mapper to map every frame (``--behind-frames 0``); at a fixed rate both
-    keep their real-time defaults."""
+    (``--skip-behind 0``) with its bundle adjustment on the frame path (``--ba-thread off``) and the mapper
+    to map every frame (``--behind-frames 0``); at a fixed rate all keep their real-time defaults."""
     from fakes import fake_up
     from services.cli import main
 
@@ -198,6 +198,7 @@ def test_fmapping_up_paced_playback_neither_skips_nor_thins_and_fixed_rate_does(
                      "--out", str(tmp_path / f"up{fps}")]) == 0
         tracker, mapper = started["tracker"], started["mapper"]
         assert ("--skip-behind" in tracker and tracker[tracker.index("--skip-behind") + 1] == "0") == paced
+        assert ("--ba-thread" in tracker and tracker[tracker.index("--ba-thread") + 1] == "off") == paced
         assert ("--behind-frames" in mapper and mapper[mapper.index("--behind-frames") + 1] == "0") == paced
 
 

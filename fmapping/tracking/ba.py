@@ -26,6 +26,7 @@ class BAResult:
     cost_before: float
     cost_after: float
     nfev: int
+    ms: float = 0.0  # wall time of the solve, when the caller measured it
 
 
 def _project(camera: PinholeCamera, t_cw: np.ndarray, x: np.ndarray):

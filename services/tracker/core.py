@@ -97,6 +97,10 @@ class TrackerServiceOptions:
     # never the frame after a lost one, so that the answers keep pace with the camera (0: never skip). A
     # keyframe is decided by tracking its frame, so a skipped frame is never one.
     skip_behind: int = 1
+    # mono: the keyframe bundle adjustment in a worker thread, merged between frames (MonoConfig.ba_thread): a
+    # keyframe no longer holds up its frame's pose. Off here (the poses then equal fmapping slam's exactly);
+    # the service's CLI turns it on unless playback is paced.
+    ba_thread: bool = False
 
     def validate(self) -> "TrackerServiceOptions":
         if self.frontend not in ("mono", "map"):
@@ -268,7 +272,12 @@ class TrackerCore(MapFrontend, ServiceCore):
         policy = SessionConfig(republish=o.republish, republish_min_m=o.republish_min_m,
                                republish_min_deg=o.republish_min_deg, restart_failed_bootstrap=True,
                                max_poses=o.max_poses)
-        self.session = PoseSession(self.camera, self.cfg, self.mono_cfg, policy, anchors=self.anchors)
+        import dataclasses
+
+        from fmapping.tracking.mono import MonoConfig
+
+        mono = dataclasses.replace(self.mono_cfg or MonoConfig(), ba_thread=o.ba_thread)
+        self.session = PoseSession(self.camera, self.cfg, mono, policy, anchors=self.anchors)
 
     def _on_anchor(self, p: P.Pose) -> list[Output]:
         done = self.mono is not None and self.mono.initialized and not self.mono.scale_pending

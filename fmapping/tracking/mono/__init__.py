@@ -25,7 +25,9 @@ RGB-only tracking before (and independently of) the neural map:
    the two oldest fixed, which also holds the scale) refines keyframe poses and
    landmarks; the new keyframe's reference holds every tracked landmark (at its
    observed pixel, with the refined depth) plus, optionally, dense depth from the
-   map (``extra_depth``). New corners fill the gaps.
+   map (``extra_depth``). New corners fill the gaps. With ``MonoConfig.ba_thread`` the bundle
+   adjustment runs in a worker thread (:mod:`~fmapping.tracking.mono.ba_thread`) and is merged
+   between frames; the new keyframe's reference then holds the depths from before it.
 4. **Loops.** At each keyframe, old keyframes the camera has come back to (by the estimated
    poses) are checked on their own landmarks and image (:mod:`fmapping.tracking.loop`); a
    verified loop that contradicts the chain is closed by a pose graph over the keyframes since
@@ -45,6 +47,7 @@ returns them moved with the bundle-adjusted keyframes. Poses are camera-to-world
 
 The package: :mod:`~fmapping.tracking.mono.config` (:class:`MonoConfig`),
 :mod:`~fmapping.tracking.mono.store` (tracks, keyframes, landmarks, the windowed BA),
+:mod:`~fmapping.tracking.mono.ba_thread` (that BA off the frame path),
 :mod:`~fmapping.tracking.mono.bootstrap` (1.), :mod:`~fmapping.tracking.mono.frontend`
 (:class:`MonoFrontend`: 2., 3., the late anchor), :mod:`~fmapping.tracking.mono.loop_closing` (4.) and
 :mod:`~fmapping.tracking.mono.restart` (going on from saved keyframes).

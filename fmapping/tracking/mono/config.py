@@ -35,6 +35,10 @@ class MonoConfig:
     ba_huber_px: float = 1.5
     ba_max_nfev: int = 15
     ba_outlier_px: float = 4.0  # observations beyond this after BA are dropped
+    # Solve the keyframe BA in a worker thread while the next frames are tracked (fmapping.tracking.mono.ba_thread):
+    # a keyframe then costs its frame ~5 ms instead of ~150 ms. The merge point depends on timing, so results
+    # vary from run to run; off for the offline runs, on in the tracker service at a camera's rate.
+    ba_thread: bool = False
     # Add depth from ``extra_depth`` (the map) to new keyframes when given ... Off: the map's depth sits a
     # little off the landmarks, which cost accuracy even gated as below, and ungated it derailed tracking
     # (bench/results/mono_tuning.md).

@@ -15,6 +15,7 @@ from fmapping.tracking.direct_tracker import DirectTracker, TrackerConfig, Track
 from fmapping.tracking.features import (
     REFERENCE_WIDTH, at_width, detect_corners, klt_track, pnp_ransac, refine_pnp, to_u8,
 )
+from fmapping.tracking.mono.ba_thread import BackgroundBA
 from fmapping.tracking.mono.bootstrap import Bootstrap
 from fmapping.tracking.mono.config import MonoConfig
 from fmapping.tracking.mono.loop_closing import LoopClosing
@@ -66,6 +67,10 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         self._kf_images: dict = {}  # keyframe index -> grey image, for loop verification (bounded)
         self._moved_all = False  # the last keyframe's update moved every keyframe (a loop closure)
         self._step = np.zeros(3)  # the current frame's rotation since the previous one (camera frame)
+        # the keyframe BA in a worker thread (MonoConfig.ba_thread), merged between frames
+        self._bg: Optional[BackgroundBA] = BackgroundBA(camera) if self.cfg.ba_thread else None
+        self.ba_merges = 0  # bundle adjustments from the worker merged so far (their poses moved)
+        self._ref_src: Optional[tuple] = None  # (keyframe, landmark ids, pixels, extra points): its reference
 
     def _geo(self, uv: np.ndarray) -> np.ndarray:
         """Pixels of the current frame unrolled for the rolling shutter (``MonoConfig.rolling_shutter``)."""
@@ -80,6 +85,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
             raise RuntimeError("MonoFrontend.track before a successful bootstrap")
         if self._anchor is not None and index - self._first_index >= 2 * self.cfg.late_anchor_frames:
             self.settle_scale(f"no tracked frame with an anchor pose in the first {2 * self.cfg.late_anchor_frames}")
+        self._merge_ba(wait=False)  # a bundle adjustment finished since the last frame: take it first
         gray = to_u8(rgb)
         res = self.tracker.track(rgb)
         if self.cfg.rolling_shutter and not res.lost:
@@ -92,7 +98,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         if res.lost:
             self._lost_run += 1
             if self._lost_run >= self.cfg.reinit_after:
-                self._reinit(index, rgb, gray, res.c2w)
+                self._reinit(index, rgb, gray, self._merge_moving(res.c2w))
                 res.reason += f"; re-initialised at frame {index} (constant-depth keyframe)"
                 self.reinits.append(index)
                 self._lost_run = 0
@@ -116,7 +122,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
             res.c2w = c2w
             res.ms += (time.perf_counter() - t0) * 1000.0  # keyframe work counts as tracking time
         if self._anchor is not None and index - self._first_index >= self.cfg.late_anchor_frames - 1:
-            res.c2w = self._late_anchor(index, res.c2w)
+            res.c2w = self._late_anchor(index, self._merge_moving(res.c2w))
         return res
 
     def _late_anchor(self, index: int, c2w: np.ndarray) -> np.ndarray:
@@ -157,6 +163,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         """Scale by ``s`` about ``c0`` what belongs to keyframes ``kfs`` (default: everything): their
         poses, the landmarks first seen by them, the frames stored relative to them (translations)
         and the tracker's references of them (with everything, its motion model too)."""
+        self._merge_ba(wait=True)  # a solution in flight is in the old scale
         self.store.scale_part(c0, s, kfs)
         self.tracker.rescale(c0, s, frames=kfs)
 
@@ -255,38 +262,98 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
 
     def _add_keyframe(self, index: int, rgb: np.ndarray, gray: np.ndarray, c2w: np.ndarray) -> np.ndarray:
         """Frame ``index`` becomes a keyframe (:meth:`KeyframeStore.add_keyframe`); the window is
-        bundle-adjusted, loops are looked for, the motion model moves with the refined keyframe."""
+        bundle-adjusted, loops are looked for, the motion model moves with the refined keyframe.
+        With ``ba_thread`` the previous keyframe's BA is merged first (waiting for it if need be),
+        loops are looked for, and this keyframe's BA goes to the worker (merged by :meth:`_merge_ba`)."""
         c = self.cfg
+        c2w = self._merge_moving(c2w)  # one bundle adjustment in flight at a time; the store changes now
         self.store.add_keyframe(index, rgb, c2w)
         self._moved_all = False
         before = self.store.kf_pose[index].copy()
-        if c.ba:
+        if c.ba and self._bg is None:
             self.store.run_ba()
         if c.loop.enabled:
             self._close_loop(index, gray)
             self._kf_images[index] = gray
             while len(self._kf_images) > c.loop.max_keyframe_images:
                 self._kf_images.pop(next(iter(self._kf_images)))
+        if c.ba and self._bg is not None:
+            prob = self.store.ba_problem()
+            if prob is not None:
+                self._bg.submit(prob)
         after = self.store.kf_pose[index]
         # move the motion model with the refined keyframe
         delta = after @ inv_pose(before)
         self.tracker.reset_motion([delta @ p for p in self.tracker.motion_history])
         return after
 
+    def _merge_ba(self, wait: bool) -> bool:
+        """Merge the worker's bundle adjustment when it is done (``wait``: block until it is): the
+        store takes its poses and landmarks, the tracker's references move with their keyframes and
+        the motion model with the current one. True when one was merged."""
+        got = None if self._bg is None else self._bg.take(wait)
+        if got is None:
+            return False
+        prob, res = got
+        before = {k: self.store.kf_pose[k].copy() for k in prob.window if k in self.store.kf_pose}
+        dropped = self.store.apply_ba(prob, res)
+        moves = {k: self.store.kf_pose[k] @ inv_pose(b) for k, b in before.items()}
+        self.tracker.move_references(moves)
+        if self._kf_index in moves:
+            self.tracker.reset_motion([moves[self._kf_index] @ p for p in self.tracker.motion_history])
+            self._rebuild_reference(dropped)
+        self.ba_merges += 1
+        return True
+
+    def _rebuild_reference(self, dropped: set) -> None:
+        """The current keyframe's reference again, from its landmarks as the merged bundle adjustment
+        left them (without the observations it ``dropped``), as :meth:`_set_reference` builds it when
+        the BA runs first: the frames tracked after the merge align to refined depths."""
+        src = self._ref_src
+        if src is None or src[0] != self._kf_index or self._kf_index not in self.store.kf_rgb:
+            return
+        k, lids, uv, extra = src
+        keep = np.array([(k, int(i)) not in dropped for i in lids], bool) if len(lids) else np.zeros(0, bool)
+        pts = self.store.cam_points(k, lids[keep], uv[keep])
+        if extra is not None:
+            pts = np.concatenate([pts, extra])
+        if len(pts) >= self.cfg.min_ref_points:
+            try:
+                self.tracker.set_reference_points(self.store.kf_rgb[k], pts, self.store.kf_pose[k], k)
+            except ValueError:
+                pass  # keep the moved one
+
+    def _merge_moving(self, c2w: np.ndarray) -> np.ndarray:
+        """Wait for and merge a bundle adjustment in flight; ``c2w``, a pose tracked against the current
+        keyframe before the merge, moved with that keyframe."""
+        k = self._kf_index
+        before = self.store.kf_pose[k].copy() if k in self.store.kf_pose else None
+        if not self._merge_ba(wait=True) or before is None:
+            return c2w
+        return orthonormalize(self.store.kf_pose[k] @ inv_pose(before) @ c2w)
+
+    def flush_ba(self) -> bool:
+        """Wait for a bundle adjustment in flight and merge it (the end of a sequence, a snapshot of
+        the final poses). True when one was merged."""
+        return self._merge_ba(wait=True)
+
     def _set_reference(self, index: int, rgb, gray, extra_depth=None) -> None:
         c = self.cfg
         tr = self.store.tracks
         has = tr.lid >= 0
         pts = self.store.cam_points(index, tr.lid[has], tr.uv[has])
+        extra = None
         if extra_depth is not None and c.dense_extra:
             fn = extra_depth(self.store.kf_pose[index])
             if self._dense_agrees(index, fn, pts):
                 dense = self._dense_points(rgb, fn)
                 if len(dense):
-                    pts = np.concatenate([pts, dense])
+                    pts, extra = np.concatenate([pts, dense]), dense
         if len(pts) < c.min_ref_points:
             raise ValueError(f"keyframe {index}: only {len(pts)} points with depth")
         self.tracker.set_reference_points(rgb, pts, self.store.kf_pose[index], index)
+        if self._bg is not None:  # rebuilt when this keyframe's bundle adjustment is merged
+            self._ref_src = (index, tr.lid[has].copy(), tr.uv[has].copy(), extra)
         self._kf_index = index
         # restart tracks here: live ones continue, fresh corners start at this keyframe
         newc = detect_corners(gray, c.klt, existing=tr.uv)
@@ -339,7 +406,9 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
 
     def poses(self, window_only: bool = False) -> dict:
         """Every tracked frame's pose, moved with its bundle-adjusted keyframe. With ``window_only``
-        just the frames of the keyframes in the current BA window: the only ones the last BA moved."""
+        just the frames of the keyframes in the current BA window: the only ones the last BA moved.
+        A bundle adjustment still in the worker (``ba_thread``) is not waited for: :meth:`flush_ba`."""
+        self._merge_ba(wait=False)
         keep = set(self.store.window) if window_only else self.store.kf_pose
         return {i: orthonormalize(self.store.kf_pose[k] @ rel) for i, (k, rel) in self.store.rel.items()
                 if k in keep and k in self.store.kf_pose}

@@ -4,13 +4,14 @@ bundle adjustment over them."""
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 
 from fmapping.camera import PinholeCamera
 from fmapping.geometry import inv_pose, scale_about
-from fmapping.tracking.ba import bundle_adjust
+from fmapping.tracking.ba import BAResult, bundle_adjust
 from fmapping.tracking.features import triangulate
 from fmapping.tracking.mono.config import MonoConfig
 
@@ -145,13 +146,23 @@ class KeyframeStore:
                 self.rel[i] = (k, rel)
 
     def run_ba(self, fixed_all_but_points: bool = False, window: Optional[list] = None,
-                max_nfev: Optional[int] = None) -> None:
+               max_nfev: Optional[int] = None) -> None:
         """Bundle adjustment of the keyframes ``window`` (default: the BA window; the first two fixed)
-        and the landmarks they observe, at most ``max_nfev`` iterations (default ``ba_max_nfev``)."""
+        and the landmarks they observe, at most ``max_nfev`` iterations (default ``ba_max_nfev``):
+        :meth:`ba_problem`, :func:`solve_ba_problem`, :meth:`apply_ba` in one go."""
+        prob = self.ba_problem(fixed_all_but_points, window, max_nfev)
+        if prob is not None:
+            self.apply_ba(prob, solve_ba_problem(self.camera, prob))
+
+    def ba_problem(self, fixed_all_but_points: bool = False, window: Optional[list] = None,
+                   max_nfev: Optional[int] = None) -> Optional["BAProblem"]:
+        """The bundle adjustment :meth:`run_ba` would solve, copied out of the store (a
+        :class:`BAProblem`, safe to solve in another thread while tracking goes on), or None when
+        there is too little to adjust."""
         c = self.cfg
         win = list(self.window if window is None else window)
         if not self.obs:
-            return
+            return None
         obs = np.array(self.obs, dtype=np.float64)
         kf_of = obs[:, 0].astype(np.int64)
         inwin = np.isin(kf_of, win)
@@ -166,28 +177,34 @@ class KeyframeStore:
             keep = inwin | (seen & np.isin(kf_of, extra))
         obs = obs[keep]
         if len(obs) == 0:
-            return
+            return None
         lids, inv = np.unique(obs[:, 1].astype(np.int64), return_inverse=True)
         counts = np.bincount(inv)
         keep = counts[inv] >= 2
         obs, inv = obs[keep], inv[keep]
         lids, inv = np.unique(obs[:, 1].astype(np.int64), return_inverse=True)
         if len(lids) < 10:
-            return
+            return None
         kf_pos = {k: i for i, k in enumerate(win + extra)}
-        poses = [self.kf_pose[k] for k in win + extra]
         fixed = list(range(len(win))) if fixed_all_but_points else list(range(min(2, len(win))))
         fixed += list(range(len(win), len(win) + len(extra)))
-        t0 = time.perf_counter()
-        res = bundle_adjust(self.camera, poses, fixed, np.stack([self.lm[i] for i in lids]),
-                            np.array([kf_pos[int(k)] for k in obs[:, 0]]), inv, obs[:, 2:4],
-                            c.ba_huber_px, c.ba_max_nfev if max_nfev is None else max_nfev)
+        return BAProblem(win, extra, [self.kf_pose[k].copy() for k in win + extra], fixed, lids,
+                         np.stack([self.lm[i] for i in lids]), np.array([kf_pos[int(k)] for k in obs[:, 0]]),
+                         inv, obs, c.ba_huber_px, c.ba_max_nfev if max_nfev is None else max_nfev)
+
+    def apply_ba(self, prob: "BAProblem", res: BAResult) -> set:
+        """Take the solution ``res`` of ``prob``: keyframe poses and landmarks, outlying observations
+        dropped (their tracks are triangulated again later from the window's newest keyframe on).
+        Returns the dropped observations as {(keyframe, landmark id)}."""
+        c = self.cfg
+        win, obs = prob.window, prob.obs
         for k, p in zip(win, res.poses[: len(win)]):
             self.kf_pose[k] = p
-        for i, p in zip(lids, res.points):
+        for i, p in zip(prob.lids, res.points):
             self.lm[int(i)] = p
         # drop outlying observations (in the window)
         bad = res.residual_px > c.ba_outlier_px
+        badset: set = set()
         if bad.any():
             badset = {(int(a), int(b)) for a, b in obs[bad][:, :2]}
             self.obs = [o for o in self.obs if (int(o[0]), int(o[1])) not in badset]
@@ -197,8 +214,38 @@ class KeyframeStore:
                 tr.lid[j] = -1  # re-triangulate later from this keyframe on
                 tr.first_kf[j] = win[-1]
                 tr.uv_first[j] = tr.geo[j]
-        self.ba_stats.append({"keyframes": len(win), "fixed_observers": len(extra), "points": int(len(lids)),
+        self.ba_stats.append({"keyframes": len(win), "fixed_observers": len(prob.extra), "points": int(len(prob.lids)),
                               "obs": int(len(obs)),
                               "rms_before_px": float(np.sqrt(2 * res.cost_before / max(1, len(obs)))),
                               "rms_after_px": float(np.sqrt(2 * res.cost_after / max(1, len(obs)))),
-                              "outliers": int(bad.sum()), "ms": (time.perf_counter() - t0) * 1000, "nfev": res.nfev})
+                              "outliers": int(bad.sum()), "ms": res.ms, "nfev": res.nfev})
+        return badset
+
+
+@dataclass
+class BAProblem:
+    """A windowed bundle adjustment copied out of a :class:`KeyframeStore`: the ``window`` keyframes
+    (free but for ``fixed``) and the older ``extra`` ones (fixed), their poses, the landmarks ``lids``
+    at ``points``, and per observation its pose position, point position and the store's row
+    ``(keyframe, landmark id, u, v)`` (``obs``)."""
+    window: list
+    extra: list
+    poses: list
+    fixed: list
+    lids: np.ndarray
+    points: np.ndarray
+    obs_pose: np.ndarray
+    obs_point: np.ndarray
+    obs: np.ndarray
+    huber_px: float
+    max_nfev: int
+
+
+def solve_ba_problem(camera: PinholeCamera, prob: BAProblem) -> BAResult:
+    """Solve ``prob`` (:func:`~fmapping.tracking.ba.bundle_adjust`); touches nothing shared, so it may
+    run in another thread. ``res.ms`` is its wall time."""
+    t0 = time.perf_counter()
+    res = bundle_adjust(camera, prob.poses, prob.fixed, prob.points, prob.obs_pose, prob.obs_point,
+                        prob.obs[:, 2:4], prob.huber_px, prob.max_nfev)
+    res.ms = (time.perf_counter() - t0) * 1000
+    return res
