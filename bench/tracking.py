@@ -15,6 +15,9 @@ Methods (each on the same frames, one process, ``torch`` on ``--threads``):
 * ``mono``             - the RGB-only front end (two-view bootstrap, sparse depth, BA),
   scale anchored with the GT baseline length of its bootstrap and again at frame 14;
 * ``mono_no_late_anchor`` - the same with the bootstrap's scale kept;
+* ``mono_ba_thread``   - ``mono`` with the keyframe bundle adjustment in a worker thread
+  (``MonoConfig.ba_thread``, as the tracker service at a camera's rate); ``wall`` times each
+  ``track`` call as its caller waits (merges of the worker's solutions included);
 * ``mono_anchor_position`` - the same with the bootstrap's baseline *vector* from the GT
   camera centres (rotation fitted to the tracks, no essential matrix);
 * ``kiss_icp``         - kiss-icp on back-projected depth.
@@ -296,14 +299,17 @@ def run_mono(frames, camera, anchor_position: bool = False, cfg=None, poses_out:
     if not fe.initialized:
         return {"error": f"bootstrap failed after {i} frames"}
     est.update(out)
-    kf_ms = []
+    kf_ms, wall = [], []
     for j in range(i, len(frames)):
+        tw = time.perf_counter()
         r = fe.track(j, frames[j].rgb)
+        wall.append((time.perf_counter() - tw) * 1000)  # what the caller waits (a merge of a BA from the worker too)
         ms.append(r.ms)
         est[j] = r.c2w
         lost += r.lost
         if fe.is_keyframe(j):
             kf_ms.append(r.ms)
+    fe.flush_ba()  # a bundle adjustment still in the worker (ba_thread)
     est.update(fe.poses())
     ids = sorted(est)
     if poses_out is not None and ids == list(range(len(frames))):
@@ -313,6 +319,7 @@ def run_mono(frames, camera, anchor_position: bool = False, cfg=None, poses_out:
             # keyframe frames (their BA / triangulation on the frame path) and the others
             "keyframe_frames": len(kf_ms), "keyframe_ms_median": float(np.median(kf_ms)) if kf_ms else None,
             "non_keyframe_ms_p95": float(np.percentile([m for m in ms if m not in kf_ms] or [0.0], 95)),
+            "wall": _timing(wall), "ba_thread_waits": fe._bg.waited if fe._bg is not None else None,
             "reinit": list(fe.reinits),
             "ate": _ate([est[k] for k in ids], [frames[k].c2w for k in ids])}
 
@@ -424,6 +431,8 @@ def bench_dataset(name: str, frames, camera, args) -> dict:
     res["mono"] = run_mono(frames, camera, poses_out=mono)
     print(f"[{name}] mono, scale from the bootstrap alone ...", flush=True)
     res["mono_no_late_anchor"] = run_mono(frames, camera, cfg=MonoConfig(late_anchor_frames=0))
+    print(f"[{name}] mono, keyframe bundle adjustment in a worker thread ...", flush=True)
+    res["mono_ba_thread"] = run_mono(frames, camera, cfg=MonoConfig(ba_thread=True))
     print(f"[{name}] mono on perturbed copies of the frames ...", flush=True)
     res["mono_spread"] = mono_spread(frames, camera)
     print(f"[{name}] mono, bootstrap anchored with the GT baseline vector ...", flush=True)

@@ -96,14 +96,6 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
         if frame_no is not None and self._next_id > 0 and frame_no <= self.frame_number(self._next_id - 1):
             raise ValueError(f"Mapper.add_frame: frame number {frame_no} does not follow "
                              f"{self.frame_number(self._next_id - 1)}")
-        return self._add_frame(rgb, c2w, timestamp, depth, defer, frame_no)
-
-    def frame_number(self, fid: int) -> int:
-        """The caller's frame number of frame id ``fid`` (``frame_no`` of :meth:`add_frame`, else ``fid``)."""
-        return self._frame_no.get(fid, fid)
-
-    def _add_frame(self, rgb, c2w, timestamp, depth, defer, frame_no) -> Optional[WindowStats]:
-        """:meth:`add_frame`, the frame number checked."""
         img, pose, dep = self._validate_frame(rgb, c2w, depth)
         fid = self._next_id
         if pose is None:
@@ -132,6 +124,10 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
         if len(self._pending) >= due:
             return self._run_window()
         return None
+
+    def frame_number(self, fid: int) -> int:
+        """The caller's frame number of frame id ``fid`` (``frame_no`` of :meth:`add_frame`, else ``fid``)."""
+        return self._frame_no.get(fid, fid)
 
     def finish(self, extra_iters: int = 0) -> Optional[WindowStats]:
         """Flush pending frames (init or a last window), then the closing global refinement
