@@ -407,8 +407,8 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
     def poses(self, window_only: bool = False) -> dict:
         """Every tracked frame's pose, moved with its bundle-adjusted keyframe. With ``window_only``
         just the frames of the keyframes in the current BA window: the only ones the last BA moved.
-        A bundle adjustment still in the worker (``ba_thread``) is not waited for: :meth:`flush_ba`."""
-        self._merge_ba(wait=False)
+        A bundle adjustment still in the worker (``ba_thread``) is not in them until it is merged: at
+        the next frame when it is done by then, or :meth:`flush_ba`."""
         keep = set(self.store.window) if window_only else self.store.kf_pose
         return {i: orthonormalize(self.store.kf_pose[k] @ rel) for i, (k, rel) in self.store.rel.items()
                 if k in keep and k in self.store.kf_pose}
