@@ -146,7 +146,9 @@ def test_kill_9_of_the_tracker_relocalises_and_loses_at_most_one_window(fault_sc
     assert run.rc == 0, run.log[-3000:]
     assert "tracker exited with code -9; restarting it" in run.log and run.up["restarts"] == {"tracker": 1}
     tc = run.up["status"]["tracker"]["counters"]
-    assert "bootstrap_frame" not in tc and tc["resumed_at"] > run.killed_at, tc  # re-localised, no new bootstrap
+    # re-localised, no new bootstrap, right after the frames it had answered: play resends from the last
+    # acknowledgement it heard, which may lag the status file's by a few frames (seen once: 20 for 24)
+    assert "bootstrap_frame" not in tc and tc["resumed_at"] > run.killed_at - WINDOW, tc
     se3 = {name: r.metrics["trajectory"]["ate_se3_cm"] for name, r in (("clean", clean), ("killed", run))}
     lost = set(_mapped(clean)) - set(_mapped(run))
     print(f"\n[supervision] tracker killed at frame {run.killed_at}: restarted once, re-localised at frame "
