@@ -85,7 +85,9 @@ def sparse_depth_loss(weights: Tensor, t: Tensor, acc: Tensor, t_far: Tensor, ta
     and the term does not depend on the world's unit (monocular maps have none). Each ray's
     value ``x`` enters as ``x / (1 + x / cap)`` (bounded by ``cap``, its pull fading with the
     error): a badly triangulated point cannot drag the surface far, yet an empty ray still
-    feels it. Mean weighted by ``point_weight`` (the points' confidence); 0 when no ray is valid.
+    feels it. Each ray's value is scaled by ``point_weight`` (the point's confidence) and summed over
+    the valid rays, divided by their *number* (not by the weights' sum: points that are all doubtful
+    pull weakly, instead of being renormalised to full strength); 0 when no ray is valid.
     """
     valid = torch.isfinite(target) & (target > 0) & (point_weight > 0)
     if not bool(valid.any()):
@@ -94,7 +96,7 @@ def sparse_depth_loss(weights: Tensor, t: Tensor, acc: Tensor, t_far: Tensor, ta
     per = (weights[valid] * (t[valid] - z).abs()).sum(-1) / z[:, 0] \
         + (1 - acc[valid]) * (t_far[valid] - z[:, 0]).abs() / z[:, 0]
     w = point_weight[valid]
-    return (per / (1 + per / cap) * w).sum() / w.sum()
+    return (per / (1 + per / cap) * w).sum() / w.numel()
 
 
 def distortion_loss(weights: Tensor, t: Tensor, t_near: Tensor, t_far: Tensor) -> Tensor:

@@ -9,8 +9,13 @@ the frames and the poses the mapper is given (ground truth, a trajectory file or
 frame with KLT (forward-backward checked); a track that ends, or reaches ``max_track``
 observations, is triangulated over all its views at once (least-squares ray intersection),
 kept when it lies in front of every camera, reprojects within ``max_reproj_px`` everywhere
-and its rays span at least ``min_parallax_deg``. Its weight grows with the parallax (the
-depth error of a triangulated point is about ``pixel noise / (focal * parallax)``).
+and its rays span at least ``min_parallax_deg``. Its weight comes from its expected relative
+depth error ``sigma = rms / (focal * parallax)`` (``rms``: its reprojection error over its views,
+at least ``min_rms_px``; parallax in radians): ``1 / (1 + (sigma / sigma_ref)^2)``. The residual
+is what tells a good track from one that drifted on blurred, noisy or low-contrast images: on a
+sharp, textured synthetic room the points' median rms is 0.13 px and their median distance to
+the true surface 1.3 % of their depth; on a blurred, low-contrast one (``fmapping synth
+--variety wide --seed 1``) 0.65 px and 11 %, with GT poses in both.
 
 Each kept point remembers the pixels it was seen at, so that a frame's sparse depth
 (``frame_depths``) can be read with the frame's *current* pose.
@@ -32,7 +37,8 @@ class SparsePointsConfig:
     min_track: int = 3  # observations a track needs to be triangulated
     max_track: int = 15  # a track is triangulated (and restarted) after this many observations
     min_parallax_deg: float = 1.5  # rays of a point must span at least this angle
-    full_weight_parallax_deg: float = 6.0  # parallax at which a point gets weight 1
+    sigma_ref: float = 0.01  # expected relative depth error at which a point's weight is 1/2
+    min_rms_px: float = 0.1  # floor of the reprojection rms in the depth error (at 320 px width)
     max_reproj_px: float = 1.5  # at 320 px image width (scaled with the width)
     half_window: int = 7  # KLT half window at 320 px width
     min_distance: int = 8  # pixels between corners at 320 px width
@@ -44,8 +50,8 @@ class SparsePointsConfig:
     def validate(self) -> None:
         if self.max_corners < 1 or self.min_track < 2 or self.max_track < self.min_track:
             raise ValueError("SparsePointsConfig: need max_corners >= 1 and 2 <= min_track <= max_track")
-        if not 0 < self.min_parallax_deg <= self.full_weight_parallax_deg:
-            raise ValueError("SparsePointsConfig: need 0 < min_parallax_deg <= full_weight_parallax_deg")
+        if not (self.min_parallax_deg > 0 and self.sigma_ref > 0 and self.min_rms_px > 0):
+            raise ValueError("SparsePointsConfig: min_parallax_deg, sigma_ref and min_rms_px must be > 0")
         if not self.max_reproj_px > 0:
             raise ValueError("SparsePointsConfig.max_reproj_px must be > 0")
         if not (self.fill_step_px > 0 and self.fill_max_edge_px > 0 and self.fill_max_ratio >= 1):
@@ -230,12 +236,25 @@ class TrackTriangulator:
         base = len(self.points)
         keep = np.flatnonzero(ok)
         self.points = np.concatenate([self.points, x[keep]])
-        self.weights = np.concatenate([self.weights, np.minimum(1.0, par[keep] / self.cfg.full_weight_parallax_deg)])
+        self.weights = np.concatenate([self.weights, point_weights(err[keep], valid[keep], par[keep], cam.fx,
+                                                                   at_width(self.cfg.min_rms_px, cam.width),
+                                                                   self.cfg.sigma_ref)])
         for j, ti in enumerate(keep):
             for fid, uv in tracks[ti]:
                 idx, pix = self._frame_obs.setdefault(fid, ([], []))
                 idx.append(base + j)
                 pix.append(uv)
+
+
+def point_weights(err: np.ndarray, valid: np.ndarray, parallax_deg: np.ndarray, focal: float, min_rms: float,
+                  sigma_ref: float) -> np.ndarray:
+    """Confidence in (0, 1] of triangulated points from their reprojection errors ``err`` (N, K) px over
+    the ``valid`` (N, K) views and their parallax: ``1 / (1 + (sigma / sigma_ref)^2)`` with the expected
+    relative depth error ``sigma = max(rms, min_rms) / (focal * radians(parallax))``."""
+    n = np.maximum(valid.sum(1), 1)
+    rms = np.sqrt((np.where(valid, err, 0.0) ** 2).sum(1) / n)
+    sigma = np.maximum(rms, min_rms) / (focal * np.radians(np.maximum(parallax_deg, 1e-6)))
+    return 1.0 / (1.0 + (sigma / sigma_ref) ** 2)
 
 
 def fill_depths(uv: np.ndarray, z: np.ndarray, w: np.ndarray, width: int, height: int, step: float,

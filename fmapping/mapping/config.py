@@ -72,6 +72,7 @@ class MapperConfig:
     sparse: SparsePointsConfig = dc_field(default_factory=SparsePointsConfig)
     sparse_depth_weight: float = 1.0  # weight of the sparse depth term (0: off); pulls rays onto triangulated points
     sparse_rays: int = 256  # rays per iteration through triangulated points
+    sparse_cap: float = 0.5  # relative depth error at which a point's pull has halved (losses.sparse_depth_loss)
     sparse_fill_weight: float = 0.0  # weight (x the points') of depth filled in between a frame's points (0: off)
     # --- per-frame affine colour (auto exposure / white balance): rendered = (1 + a) * colour + b per channel
     exposure: bool = True
@@ -101,6 +102,8 @@ class MapperConfig:
             raise ValueError(f"MapperConfig.sampler must be pdf, sliding_window or stratified, got {self.sampler!r}")
         if self.bounds not in ("points", "frusta"):
             raise ValueError(f"MapperConfig.bounds must be 'points' or 'frusta', got {self.bounds!r}")
+        if self.sparse_cap <= 0:
+            raise ValueError(f"MapperConfig.sparse_cap must be > 0, got {self.sparse_cap}")
         if min(self.sparse_depth_weight, self.sparse_rays, self.sparse_fill_weight, self.lr_exposure, self.exposure_reg,
                self.distortion_weight) < 0:
             raise ValueError("MapperConfig: sparse_depth_weight, sparse_rays, sparse_fill_weight, lr_exposure, "

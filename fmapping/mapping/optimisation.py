@@ -174,7 +174,8 @@ class OptimisationStep:
             s_out, (_, s_t_far, s_hit) = render_batch(self.field, self.aabb, cfg, s_origins, s_dirs, mode, n_coarse,
                                                       n_fine, grad=True, sw_window=sw_window, color=False,
                                                       generator=gen)
-            sparse_loss = sparse_depth_loss(s_out.weights, s_out.t, s_out.acc, s_t_far, s_z[pick], s_w[pick] * s_hit)
+            sparse_loss = sparse_depth_loss(s_out.weights, s_out.t, s_out.acc, s_t_far, s_z[pick], s_w[pick] * s_hit,
+                                            cap=cfg.sparse_cap)
             loss = loss + cfg.sparse_depth_weight * sparse_loss
         if expo is not None and cfg.exposure_reg > 0:
             loss = loss + cfg.exposure_reg * expo.pow(2).mean()
