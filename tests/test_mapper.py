@@ -139,6 +139,31 @@ def test_overfit_few_frames_psnr():
     assert np.mean(vals) > 20.0 > before + 10, vals
 
 
+def test_sparse_depth_option_pulls_the_init_onto_the_triangulated_points():
+    """With ``sparse_depth_weight`` > 0 (an option, off by default) the init optimises the sparse depth
+    term over the window's triangulated points (from the frames and the GT poses, no box given): the
+    term is reported and its value falls from the first round's to the last round's."""
+    scene, cam, c2w, views = tiny_scene(8, size=(160, 120))
+    off = Mapper(tiny_config(init_frames=6, final_global_iters=0), cam)
+    st_off = feed(off, views, c2w, 0, 6)
+    assert st_off.kind == "init" and st_off.sparse_loss == 0.0
+    cfg = tiny_config(init_frames=6, final_global_iters=0, sparse_depth_weight=1.0)
+    m = Mapper(cfg, cam)
+    first = []
+    orig = m._run_iters
+
+    def spy(*a, **k):
+        st = orig(*a, **k)
+        first.append(st.sparse_loss)
+        return st
+
+    m._run_iters = spy
+    st = feed(m, views, c2w, 0, 6)
+    assert st.kind == "init" and len(first) == 2 and m.stats()["sparse_points"] > 20
+    # measured: 0.136 after the stratified round, 0.025 after the sliding-window one
+    assert 0.0 < first[-1] < 0.5 * first[0], first
+
+
 def test_tiny_reconstruction_with_gt_poses():
     from fmapping.export import export_point_cloud
 

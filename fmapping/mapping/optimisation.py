@@ -235,6 +235,7 @@ class OptimisationStep:
             photo_loss=float(np.mean([x["photo"] for x in logs[-5:]])) if logs else float("nan"),
             warp_loss=float(np.mean([x["warp"] for x in logs[-5:]])) if logs else float("nan"),
             pc_loss=float(np.mean([x["pc"] for x in logs[-5:]])) if logs else float("nan"),
+            sparse_loss=float(np.mean([x["sparse"] for x in logs[-5:]])) if logs else float("nan"),
             rays=self.cfg.rays_per_iter * iters,
             samples_per_ray=logs[-1]["samples"] if logs else 0, frames=list(ids),
         )

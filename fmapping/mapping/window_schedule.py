@@ -47,6 +47,7 @@ class WindowStats:
     samples_per_ray: int
     frames: list
     pc_loss: float = 0.0
+    sparse_loss: float = 0.0
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -107,7 +108,7 @@ class WindowSchedule:
                             iterations=total["iters"], loss=total["loss"][-1], photo_loss=total["photo"][-1],
                             warp_loss=total["warp"][-1], rays=cfg.rays_per_iter * total["iters"],
                             samples_per_ray=st.samples_per_ray if st else 0, frames=ids,
-                            pc_loss=st.pc_loss if st else 0.0)
+                            pc_loss=st.pc_loss if st else 0.0, sparse_loss=st.sparse_loss if st else 0.0)
         self._stats.append(stats)
         return stats
 
