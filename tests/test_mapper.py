@@ -149,19 +149,19 @@ def test_sparse_depth_option_pulls_the_init_onto_the_triangulated_points():
     assert st_off.kind == "init" and st_off.sparse_loss == 0.0
     cfg = tiny_config(init_frames=6, final_global_iters=0, sparse_depth_weight=1.0)
     m = Mapper(cfg, cam)
-    first = []
+    rounds = []
     orig = m._run_iters
 
     def spy(*a, **k):
         st = orig(*a, **k)
-        first.append(st.sparse_loss)
+        rounds.append(st.sparse_loss)
         return st
 
     m._run_iters = spy
     st = feed(m, views, c2w, 0, 6)
-    assert st.kind == "init" and len(first) == 2 and m.stats()["sparse_points"] > 20
+    assert st.kind == "init" and len(rounds) == 2 and m.stats()["sparse_points"] > 20
     # measured: 0.136 after the stratified round, 0.025 after the sliding-window one
-    assert 0.0 < first[-1] < 0.5 * first[0], first
+    assert 0.0 < rounds[-1] < 0.5 * rounds[0], rounds
 
 
 def test_tiny_reconstruction_with_gt_poses():
