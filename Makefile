@@ -19,7 +19,7 @@ $(STAMP): pyproject.toml
 
 # ruff (pyproject.toml [tool.ruff]) first, then every test, the slow ones included
 lint: $(STAMP)
-	$(BIN)/ruff check fmapping services tests bench
+	$(BIN)/ruff check fmapping services tests bench examples
 
 test: lint
 	$(BIN)/python -m pytest

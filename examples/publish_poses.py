@@ -35,7 +35,8 @@ class PoseFeeder:
     """Zenoh-free: the pose (or an unusable placeholder) to publish for each frame."""
 
     def __init__(self, timestamps: np.ndarray, c2w: np.ndarray, max_dt: float = 0.02, source: str = "external"):
-        self.ts, self.c2w, self.max_dt, self.source = np.asarray(timestamps, np.float64), np.asarray(c2w), max_dt, source
+        self.ts, self.c2w = np.asarray(timestamps, np.float64), np.asarray(c2w)
+        self.max_dt, self.source = max_dt, source
         self.matched = 0
         self.missing = 0
 

@@ -219,10 +219,13 @@ class PoseSession:
     def finish(self, why: str = "the sequence ended before it") -> list[PoseUpdate]:
         """The stream ended: a bundle adjustment still in the worker (``MonoConfig.ba_thread``) is
         merged and the poses it moved leave again, then the held poses leave (the late anchor is given
-        up, for ``why``)."""
+        up, for ``why``). Frames a bootstrap still holds are answered as skipped (no pose)."""
         out: list[PoseUpdate] = []
         if self.frontend.initialized and self.frontend.flush_ba() and self.cfg.republish:
             out += self._refined()
+        if not self.frontend.initialized and self._boot:
+            boot, self._boot = self._boot, {}
+            out += [PoseUpdate(s, boot[s], np.eye(4), 0.0, SKIPPED) for s in sorted(boot)]
         return out + self.release(settle=why)
 
 

@@ -456,21 +456,55 @@ def test_restarted_tracker_resyncs_from_the_latest_snapshot(dataset, tmp_path):
     assert c.get("references_rendered", 0) + c.get("reference_failures", 0) >= 1
 
 
-def _feed_mono(core, ds, anchors: bool):
+def _feed_mono(core, ds, anchors: bool, anchor_after: bool = False):
     """Frames of ``ds`` into a mono TrackerCore (each preceded by its GT pose on the anchor
-    channel when ``anchors``, as io play sends them); returns the first Pose per seq, the
+    channel when ``anchors``, as io play sends them; followed by it with ``anchor_after``, as
+    they may arrive: they travel on different keys); returns the first Pose per seq, the
     frame index whose arrival answered it, and the newest Pose per seq (republished after
     bundle adjustment)."""
     first, answered_at, newest = {}, {}, {}
     for i in range(len(ds)):
         f = ds[i]
-        if anchors:
-            core.handle("poses", P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
-        for _, m in core.handle("frames", P.encode(P.frame_from_dataset(f, seq=i))):
+        anchor = P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt"))
+        outs = core.handle("poses", anchor) if anchors and not anchor_after else []
+        outs += core.handle("frames", P.encode(P.frame_from_dataset(f, seq=i)))
+        if anchors and anchor_after:
+            outs += core.handle("poses", anchor)
+        for _, m in outs:
             if m.seq not in first:
                 first[m.seq], answered_at[m.seq] = m, i
             newest[m.seq] = m
     return first, answered_at, newest
+
+
+def test_mono_tracker_core_waits_for_the_first_frames_anchor(room320):
+    """Frames and anchor poses travel on different keys: a frame may come before its anchor. The
+    tracker holds it (up to ``anchor_wait`` later frames) while the anchor matters: the bootstrap's
+    first frame (else the world frame is the identity; ``fmapping up`` once ran un-anchored this way,
+    170 cm off the GT frame) and the frames up to the late anchor (else it never sees one and gives
+    up at frame 30). So anchors that come just after their frames give the same answers, at the same
+    frames, as anchors that come first. Without any anchor, frame 0 goes on after the wait (the
+    identity), and a stop answers the frames still held."""
+    from fmapping.datasets import open_dataset
+    from services.tracker.core import TrackerCore
+
+    ds = open_dataset(room320)
+    core = TrackerCore()
+    first, answered_at, newest = _feed_mono(core, ds, anchors=True, anchor_after=True)
+    ref_first, ref_answered_at, ref_newest = _feed_mono(TrackerCore(), ds, anchors=True)
+    assert core.counters.get("bootstrap_anchored") == 1 and core.mono.late_anchor["frame"] == 14
+    assert answered_at == ref_answered_at and sorted(first) == list(range(len(ds)))
+    np.testing.assert_allclose(first[0].c2w, ds[0].c2w, atol=1e-12)
+    for k in range(len(ds)):
+        np.testing.assert_allclose(first[k].c2w, ref_first[k].c2w, atol=1e-9, err_msg=f"frame {k}")
+        np.testing.assert_allclose(newest[k].c2w, ref_newest[k].c2w, atol=1e-9, err_msg=f"frame {k}")
+    core = TrackerCore()
+    assert core.handle("frames", P.encode(P.frame_from_dataset(ds[0], seq=0))) == [] and len(core.waiting) == 1
+    core.handle("frames", P.encode(P.frame_from_dataset(ds[1], seq=1)))
+    assert len(core.waiting) == 2 and core.counters.get("frames_received") == 2  # frame 0 still waits
+    out = core.handle("control", P.encode(P.Control(command="stop")))
+    assert [m.seq for _, m in out] == [0, 1] and not core.waiting  # answered: no bootstrap yet, no pose
+    assert all(m.quality == 0 for _, m in out) and core.ack == 1
 
 
 def test_mono_tracker_core_is_the_library_front_end_anchored_by_gt(room320):

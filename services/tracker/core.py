@@ -79,7 +79,7 @@ class TrackerServiceOptions:
     seen_only: bool = True  # rendered reference depth only where a mapped frame looked (see seen_by)
     frontend: str = "mono"  # "mono" (RGB-only front end from frame 0) | "map" (track against the mapper's field)
     anchor_source: str = "gt"  # poses fixing world frame and scale of the mono bootstrap ("" = none)
-    anchor_wait: int = 2  # mono bootstrap: frames a frame waits for its anchor pose once anchors flow
+    anchor_wait: int = 2  # mono bootstrap: later frames a frame waits for its anchor pose (the first one always)
     # mono: after each keyframe bundle adjustment, publish again (same seq) the poses it moved by more
     # than this, so the mapper trains on them and the recorder keeps them ("republished" counter)
     republish_min_m: float = 1e-3
@@ -136,6 +136,7 @@ class TrackerCore(MapFrontend, ServiceCore):
         self.opts = (opts or TrackerServiceOptions()).validate()
         self.session = None  # PoseSession of the mono front end (frontend "mono"): the pose policy
         self.anchors: dict[int, np.ndarray] = {}  # anchor poses of the frames the bootstrap may still use
+        self._stopped = False  # a stop control came: no frame waits for its anchor any more
         self.camera = None
         self.tracker = None
         self.field = None
@@ -183,7 +184,9 @@ class TrackerCore(MapFrontend, ServiceCore):
             elif msg.command == "stop":
                 if self.session is None:  # the stream ended: nothing stays unanswered
                     return []
-                return self._publish(self.session.finish("the stream stopped before it"))
+                self._stopped = True  # frames held for their anchor pose go on without it
+                out = self._advance()
+                return out + self._publish(self.session.finish("the stream stopped before it"))
             return []
         raise ValueError(f"TrackerCore: unexpected message {type(msg).__name__}")
 
@@ -251,6 +254,7 @@ class TrackerCore(MapFrontend, ServiceCore):
         self._motion_seq = -1
         self.session = None
         self.anchors.clear()
+        self._stopped = False
         self._skipped_last = False
         self.counters.inc("resets")
 
@@ -357,9 +361,9 @@ class TrackerCore(MapFrontend, ServiceCore):
                 self.waiting.popitem(last=False)
                 out += self._resume_mono(seq, f)
                 continue
+            if (not sess.initialized or sess.scale_pending) and self._wait_for_anchor(seq):
+                break  # this frame's anchor pose is on its way (the bootstrap or the late anchor may use it)
             if not sess.initialized:
-                if self.anchors and seq not in self.anchors and len(self.waiting) <= self.opts.anchor_wait:
-                    break  # anchors flow: this frame's is on its way
                 self.waiting.popitem(last=False)
                 failures = sess.bootstrap_failures
                 t0 = time.perf_counter()
@@ -390,6 +394,17 @@ class TrackerCore(MapFrontend, ServiceCore):
             self.counters.set("loop_closures", len(sess.frontend.loops))
         self.counters.set("waiting_frames", len(self.waiting))
         return out
+
+    def _wait_for_anchor(self, seq: int) -> bool:
+        """Hold frame ``seq`` (bootstrap, or scale pending) for its anchor pose? While anchors flow, and
+        for the bootstrap's first frame whenever an anchor source is set. Frames and anchor poses travel
+        on different keys, so a frame may come before its anchor: bootstrapping without it would put the
+        world frame at the identity, and a late anchor that never sees one gives up after
+        2 x ``late_anchor_frames``. At most until ``anchor_wait`` later frames have come, and not once
+        the stream has stopped. Poses are held while the scale is pending anyway: the wait costs no latency."""
+        if seq in self.anchors or self._stopped or len(self.waiting) > self.opts.anchor_wait:
+            return False
+        return bool(self.anchors) or (bool(self.opts.anchor_source) and self.session.c2w0 is None)
 
     def _keep_pace(self) -> bool:
         """Skip the frame at hand (see ``TrackerServiceOptions.skip_behind``)? Called once per tracked frame."""
