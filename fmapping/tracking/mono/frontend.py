@@ -66,6 +66,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         self.loops_refused: list = []  # verified loops whose correction was too large to trust
         self._kf_images: dict = {}  # keyframe index -> grey image, for loop verification (bounded)
         self._moved_all = False  # the last keyframe's update moved every keyframe (a loop closure)
+        self._loop_ba: Optional[tuple] = None  # (problem, keyframes, old, graph size, loop record): in the worker
         self._step = np.zeros(3)  # the current frame's rotation since the previous one (camera frame)
         # the keyframe BA in a worker thread (MonoConfig.ba_thread), merged between frames
         self._bg: Optional[BackgroundBA] = BackgroundBA(camera) if self.cfg.ba_thread else None
@@ -266,9 +267,9 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         With ``ba_thread`` the previous keyframe's BA is merged first (waiting for it if need be),
         loops are looked for, and this keyframe's BA goes to the worker (merged by :meth:`_merge_ba`)."""
         c = self.cfg
+        self._moved_all = False  # (a loop's bundle adjustment merged just below sets it again)
         c2w = self._merge_moving(c2w)  # one bundle adjustment in flight at a time; the store changes now
         self.store.add_keyframe(index, rgb, c2w)
-        self._moved_all = False
         before = self.store.kf_pose[index].copy()
         if c.ba and self._bg is None:
             self.store.run_ba()
@@ -277,7 +278,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
             self._kf_images[index] = gray
             while len(self._kf_images) > c.loop.max_keyframe_images:
                 self._kf_images.pop(next(iter(self._kf_images)))
-        if c.ba and self._bg is not None:
+        if c.ba and self._bg is not None and not self._bg.busy:  # (busy: the loop's BA covers this keyframe)
             prob = self.store.ba_problem()
             if prob is not None:
                 self._bg.submit(prob)
@@ -303,6 +304,10 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
             self.tracker.reset_motion([moves[self._kf_index] @ p for p in self.tracker.motion_history])
             self._rebuild_reference(dropped)
         self.ba_merges += 1
+        if self._loop_ba is not None and self._loop_ba[0] is prob:  # a loop closure's: back to the graph's scale
+            loop, self._loop_ba = self._loop_ba, None
+            self._after_loop_ba(*loop[1:])
+            self._moved_all = True
         return True
 
     def _rebuild_reference(self, dropped: set) -> None:

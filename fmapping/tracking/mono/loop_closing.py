@@ -8,6 +8,7 @@ import numpy as np
 
 from fmapping.geometry import inv_pose, orthonormalize, pose_distance
 from fmapping.tracking.loop import LoopMatch, cross_check, locate_in_keyframe, loop_candidates
+from fmapping.tracking.mono.store import solve_ba_problem
 from fmapping.tracking.posegraph import optimize_pose_graph
 
 
@@ -52,7 +53,7 @@ class LoopClosing:
                                   f"{cross and round(cross[1] / scale, 4)} x median depth apart")
                     self.loops_refused.append(rec)
                     continue
-            rec.update(self._correct_loop(k, index, m, lids, scale))
+            self._correct_loop(k, index, m, lids, scale, rec)
             self.loops.append(rec)
             return
 
@@ -68,14 +69,17 @@ class LoopClosing:
                            np.stack([self.store.lm[i] for i in lids]), self.store.kf_pose[index], self.cfg.klt,
                            self.cfg.loop)
 
-    def _correct_loop(self, old: int, index: int, m: LoopMatch, old_lids: np.ndarray, scale: float) -> dict:
+    def _correct_loop(self, old: int, index: int, m: LoopMatch, old_lids: np.ndarray, scale: float, out: dict) -> None:
         """Pose graph over the keyframes from ``old`` (fixed) to ``index``: the chain's relative poses
         plus the loop edge ``old`` -> ``index`` (``m``, a :class:`~fmapping.tracking.loop.LoopMatch` on
         the landmarks ``old_lids`` of keyframe ``old``). Landmarks move with their first keyframe;
         then (``loop.loop_ba``, loops up to ``loop_ba_max_keyframes``) the loop's inliers become
         observations of keyframe ``index``, the loop's keyframes are bundle-adjusted (the first two
-        fixed) and scaled back to the pose graph's size (``loop_ba_keep_scale``). The tracker's
-        references move with their keyframes; non-keyframes are stored relative to their keyframe."""
+        fixed) and scaled back to the pose graph's size (``loop_ba_keep_scale``). With ``ba_thread``
+        that bundle adjustment is solved in the worker, off the frame path (a second or more for
+        tens of keyframes), and taken like a keyframe's (:meth:`_merge_ba`, then :meth:`_after_loop_ba`).
+        The tracker's references move with their keyframes; non-keyframes are stored relative to their keyframe.
+        What it did goes into the loop's record ``out`` (the BA's figures once it is merged)."""
         lc = self.cfg.loop
         kfs = sorted(k for k in self.store.kf_pose if k >= old)
         before = [self.store.kf_pose[k].copy() for k in kfs]
@@ -89,7 +93,7 @@ class LoopClosing:
         for lid, k in self.store.first_keyframes().items():
             if k in corr:
                 self.store.lm[lid] = corr[k][:3, :3] @ self.store.lm[lid] + corr[k][:3, 3]
-        out = {"keyframes": len(kfs), "cost_before": stats["cost_before"], "cost_after": stats["cost_after"]}
+        out.update(keyframes=len(kfs), cost_before=stats["cost_before"], cost_after=stats["cost_after"])
         out["ba"] = lc.loop_ba and len(kfs) <= lc.loop_ba_max_keyframes
         if out["ba"]:
             have = {int(o[1]) for o in self.store.obs if o[0] == index}
@@ -97,14 +101,25 @@ class LoopClosing:
                 if int(lid) not in have:
                     self.store.obs.append((index, int(lid), float(u), float(v)))
             graph_size = self.store.spread_about(kfs, old)
-            self.store.run_ba(window=kfs, max_nfev=lc.loop_ba_max_nfev)
-            out["ba_scale"] = graph_size / max(self.store.spread_about(kfs, old), 1e-12)
-            out["ba_rms_px"] = self.store.ba_stats[-1]["rms_after_px"] if self.store.ba_stats else None
+            prob = self.store.ba_problem(window=kfs, max_nfev=lc.loop_ba_max_nfev)
+            if self._bg is not None and prob is not None:  # ba_thread: solved off the frame path
+                self._bg.submit(prob)
+                self._loop_ba = (prob, kfs, old, graph_size, out)
+                out["ba_in_worker"] = True
+            elif prob is not None:
+                self.store.apply_ba(prob, solve_ba_problem(self.camera, prob))
         self.tracker.move_references({k: self.store.kf_pose[k] @ inv_pose(b) for k, b in zip(kfs, before)})
-        if out["ba"] and lc.loop_ba_keep_scale:
-            self._scale_keyframes(kfs, old, out["ba_scale"])
+        if out["ba"] and self._loop_ba is None:
+            self._after_loop_ba(kfs, old, graph_size, out)
         self._moved_all = True
-        return out
+
+    def _after_loop_ba(self, kfs: list, old: int, graph_size: float, out: dict) -> None:
+        """The loop's bundle adjustment is in the store: its scale against the pose graph's
+        (``ba_scale``), its rms, and (``loop_ba_keep_scale``) the keyframes scaled back to the graph's size."""
+        out["ba_scale"] = graph_size / max(self.store.spread_about(kfs, old), 1e-12)
+        out["ba_rms_px"] = self.store.ba_stats[-1]["rms_after_px"] if self.store.ba_stats else None
+        if self.cfg.loop.loop_ba_keep_scale:
+            self._scale_keyframes(kfs, old, out["ba_scale"])
 
     def _scale_keyframes(self, kfs: list, about: int, s: float) -> None:
         """Scale what belongs to keyframes ``kfs`` by ``s`` about keyframe ``about``'s centre (:meth:`_scale_part`)."""
