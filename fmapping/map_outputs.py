@@ -54,14 +54,15 @@ def map_points(mapper, max_points: int, final: bool = False, quick: bool = False
                seed: int = 0, should_stop=None) -> tuple[np.ndarray, np.ndarray]:
     """Coloured points of the map (:func:`fmapping.export.export_point_cloud`), at most ``max_points``.
 
-    Live snapshots render up to 6 keyframes at <= 64 px width (cheap; ``quick``: 4 at 48 px,
-    for stopping on a signal); ``final`` renders every keyframe at full resolution (stride 2)
-    with the input images for colour. Returns float32 (N, 3), uint8 (N, 3)."""
+    Live snapshots render up to 6 of the mapper's views (:meth:`~fmapping.mapping.Mapper.view_ids`:
+    keyframes and the local window) at <= 64 px width (cheap; ``quick``: 4 at 48 px, for stopping on
+    a signal); ``final`` renders every view at full resolution (stride 2) with the input images for
+    colour. Returns float32 (N, 3), uint8 (N, 3)."""
     from fmapping.export import export_point_cloud
 
     cfg = mapper.cfg
     poses = mapper.frame_poses()
-    ids = mapper.keyframe_ids() or sorted(poses)
+    ids = mapper.view_ids() or sorted(poses)
     cam = mapper.camera
     images = None
     check_views = 8
@@ -87,12 +88,12 @@ def map_points(mapper, max_points: int, final: bool = False, quick: bool = False
 
 def map_mesh(mapper, resolution: int = 96, should_stop=None):
     """(vertices, faces, colours) by marching cubes (:func:`fmapping.export.export_mesh`), culled to
-    what the keyframes saw."""
+    what the mapper's views (keyframes and the local window) saw."""
     from fmapping.export import export_mesh
 
     cfg = mapper.cfg
     poses = mapper.frame_poses()
-    ids = mapper.keyframe_ids() or sorted(poses)
+    ids = mapper.view_ids() or sorted(poses)
 
     def render(c2w, cam):
         r = mapper.render(c2w, cam, samples=(cfg.n_coarse, cfg.n_fine))

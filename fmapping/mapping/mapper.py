@@ -179,6 +179,13 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
     def keyframe_ids(self) -> list[int]:
         return list(self._keyframes)
 
+    def view_ids(self) -> list[int]:
+        """The views the map is exported from: the keyframes and the local window's frames (the newest
+        ones, not keyframes yet, whose images the mapper still holds), in frame order. Keyframes alone
+        leave out what the camera saw last: up to a whole local window of frames, a sixth of the path
+        when a mapper behind the stream took every sixth frame."""
+        return sorted(set(self._keyframes) | set(self._local))
+
     def window_ids(self) -> list[int]:
         return list(self._window)
 

@@ -54,13 +54,12 @@ def _sim3_to_gt(est: np.ndarray, gt: list) -> Optional[tuple]:
 
 
 def _export(run: SlamRun, out: Path) -> dict:
-    """map.ply and mesh.ply from the keyframe and window views, in the output frame (scaled
-    about frame 0 by the anchor)."""
+    """map.ply and mesh.ply from the mapper's views (keyframes and the local window), in the output
+    frame (scaled about frame 0 by the anchor)."""
     m = run.mapper
     cfg = run.cfg.mapper
     poses = m.frame_poses()
-    kf = sorted(set(m.keyframe_ids()) | set(m.window_ids()))
-    kf_poses = {k: poses[k] for k in kf if k in poses}
+    kf_poses = {k: poses[k] for k in m.view_ids() if k in poses}
     return write_map_outputs(m, kf_poses, run.camera, out, near=cfg.near, far=cfg.far,
                              mesh_samples=(48, 16), mesh_resolution=MESH_RESOLUTION,
                              center=run.c2w0[:3, 3], scale=run.scale)
