@@ -209,6 +209,13 @@ class Inbox:
                 raise ValueError(f"Inbox: ranked channel {name!r} must also be thinned")
         self._cond = threading.Condition()
         self.counters = counters or Counters()
+        self._last_put: dict[str, float] = {}  # channel -> time.monotonic() of its newest item
+
+    def idle(self, channel: str) -> float:
+        """Seconds since the newest item of ``channel`` arrived (inf before the first)."""
+        with self._cond:
+            t = self._last_put.get(channel)
+        return float("inf") if t is None else time.monotonic() - t
 
     def put(self, channel: str, item: Any, nbytes: Optional[int] = None) -> bool:
         """Append ``item`` (``nbytes`` long, default :func:`item_bytes`); returns False when older
@@ -223,6 +230,7 @@ class Inbox:
             q.append(item)
             sizes.append(size)
             self._bytes[channel] += size
+            self._last_put[channel] = time.monotonic()
             dropped = ranked_out = 0
             rank = self._rank.get(channel)
             while len(q) > 1 and (len(q) > self._cap[channel] or self._bytes[channel] > self._max_bytes[channel]):

@@ -81,15 +81,18 @@ def _tracker_stream(ds) -> tuple[list[bytes], list[list[bytes]]]:
     return frames, poses
 
 
-def _run_mapper_at_30fps(frames, poses, capacity: int, ranked: bool):
+def _run_mapper_at_30fps(frames, poses, capacity: int, ranked: bool, cost: dict = COST_S, **opts_kw):
     """The mapper's shell loop on a fake clock (see the module docstring); returns the core after the
-    end of the stream (its closing stage run) and the fake time it finished."""
+    end of the stream (its closing stage run) and the fake time it finished. The core's ``stream_idle``
+    is the fake time since the newest frame was published; frames it thinned while the stream was idle
+    (``stream_idle_s``) are counted as ``thinned_while_idle``."""
     from services.core_support import Counters, Inbox
     from services.mapper.core import MapperCore, MapperServiceOptions
     from services.mapper.intake import book_for, frame_rank
 
     now = [0.0]
-    opts = MapperServiceOptions(pose_source="tracker", points_interval=1e9, checkpoint_every=0, pose_timeout=0)
+    opts = MapperServiceOptions(pose_source="tracker", points_interval=1e9, checkpoint_every=0, pose_timeout=0,
+                                **opts_kw)
     book = book_for(opts.validate())
     counters = Counters()  # shared by the inbox and the core, as in the service
     inbox = Inbox({"poses": 8192, "frames": capacity}, counters, thin=("frames",),
@@ -97,6 +100,7 @@ def _run_mapper_at_30fps(frames, poses, capacity: int, ranked: bool):
     core = MapperCore(small_cfg(final_global_iters=4), opts, counters=counters, book=book, clock=lambda: now[0])
     core.backlog = lambda: inbox.size("frames")
     n, k = len(frames), 0
+    core.stream_idle = lambda: now[0] - (k - 1) / FPS
     while True:
         while k < n and k / FPS <= now[0]:  # everything published while the mapper was busy
             for pb in poses[k]:
@@ -111,9 +115,12 @@ def _run_mapper_at_30fps(frames, poses, capacity: int, ranked: bool):
                 break  # the player saw the last acknowledgement: the end-of-sequence stop comes
             now[0] = k / FPS  # idle until the next frame
             continue
-        before = {kind: core.counters.get(f"updates_{kind}") for kind in COST_S}
+        before = {kind: core.counters.get(f"updates_{kind}") for kind in cost}
+        thinned, idle = core.counters.get("frames_thinned"), core.stream_idle() >= opts.stream_idle_s
         core.apply(item[1][1])
-        now[0] += sum(COST_S[kd] for kd in COST_S if core.counters.get(f"updates_{kd}") > before[kd])
+        if idle and core.counters.get("frames_thinned") > thinned:
+            core.counters.inc("thinned_while_idle")
+        now[0] += sum(cost[kd] for kd in cost if core.counters.get(f"updates_{kd}") > before[kd])
     core.apply(P.Control("stop", {"reason": "end"}))
     return core, now[0]
 
@@ -156,6 +163,17 @@ def test_mapper_core_at_30fps_integrates_every_keyframe_and_runs_the_closing_ref
 
     plain, _ = _run_mapper_at_30fps(frames, poses, capacity=12, ranked=False)
     assert keyframes - set(plain.seq_of_fid), "the plain inbox kept every keyframe too: the scenario is too easy"
+
+    # once no frame has come for stream_idle_s (the stream ended) the mapper stops skipping non-keyframes:
+    # every posed frame it still holds is mapped, in deferred windows. An init of 2 s outlasts the stream.
+    slow = {**COST_S, "init": 2.0}
+    busy, _ = _run_mapper_at_30fps(frames, poses, capacity=40, ranked=True, cost=slow, stream_idle_s=1e9)
+    idle, _ = _run_mapper_at_30fps(frames, poses, capacity=40, ranked=True, cost=slow, stream_idle_s=0.1)
+    assert busy.counters.get("frames_thinned") > 0 and busy.counters.get("thinned_while_idle") == 0
+    assert idle.counters.get("frames_thinned") == idle.counters.get("thinned_while_idle") == 0
+    usable = {s for s, m in first.items() if m.quality > 0}
+    assert set(idle.seq_of_fid) == usable and set(busy.seq_of_fid) < usable  # every posed frame mapped
+    assert idle.counters.get("updates_final") == 1 and idle.ack == len(ds) - 1
 
 
 def test_tracker_core_behind_the_camera_skips_every_other_frame_at_most_and_keeps_tracking(room320):

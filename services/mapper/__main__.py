@@ -63,6 +63,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--behind-frames", type=int, default=10,
                    help="frames waiting beyond which the mapper maps keyframes only and windows take more frames "
                         "(0 = never: paced playback)")
+    p.add_argument("--stream-idle", type=float, default=2.0,
+                   help="... while frames keep coming: once none has arrived for this many seconds (the stream "
+                        "ended or paused), every posed frame waiting is mapped")
     p.add_argument("--device", default=None, help="torch device (default: the config's, 'auto')")
     p.add_argument("--threads", type=int, default=0,
                    help="torch threads (0 = auto: half the CPUs this process may use, at least 1)")
@@ -94,7 +97,7 @@ def main(argv=None, session=None, keys=None) -> int:
         mesh_resolution=args.mesh_resolution,
         anchor_source=args.anchor, anchor_frames=args.anchor_frames, pose_timeout=args.pose_timeout,
         resent_frames=args.resent_frames, keyframes=args.keyframes, keyframe_every=args.keyframe_every,
-        behind_frames=args.behind_frames,
+        behind_frames=args.behind_frames, stream_idle_s=args.stream_idle,
     ).validate()
     # frames: when full, known non-keyframes go first, then frames without a pose yet, thinned evenly
     book = book_for(opts)
@@ -108,6 +111,7 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args, book=None) -> int
     core = MapperCore(cfg, opts, counters=svc.counters, on_bad_input=svc.report_bad_input,
                       should_stop=lambda: svc.shutdown.requested, book=book)
     core.backlog = lambda: svc.inbox.size("frames")
+    core.stream_idle = lambda: svc.inbox.idle("frames")
     if opts.resume and core.load_checkpoint():
         svc.log.info("resumed from %s at frame %d (field version %d)", core.resumed_from, core.ack, core.version)
     keys = svc.keys

@@ -82,6 +82,9 @@ class MapperServiceOptions:
     keyframe_turn_deg: float = 5.0
     # frames waiting beyond which non-keyframes are skipped and windows take more frames (0: never; paced playback)
     behind_frames: int = 10
+    # ... but only while frames keep coming: once none has arrived for this long (the stream ended or
+    # paused: no camera to keep up with), every posed frame it holds is integrated (deferred windows)
+    stream_idle_s: float = 2.0
     # the closing refinement also runs the window iterations a paced run would have spent on the frames since the
     # init and this run did not (frames thinned or skipped, windows over more frames), so that the final map matches
     # a paced run's; at most this many extra iterations
@@ -105,8 +108,8 @@ class MapperServiceOptions:
             self.keyframes = "source" if self.pose_source == "tracker" else "motion"
         if self.keyframes not in ("source", "motion"):
             raise ValueError(f"keyframes must be auto, source or motion, got {self.keyframes!r}")
-        if self.keyframe_every < 1 or self.behind_frames < 0:
-            raise ValueError("keyframe_every must be >= 1 and behind_frames >= 0")
+        if self.keyframe_every < 1 or self.behind_frames < 0 or not self.stream_idle_s >= 0:
+            raise ValueError("keyframe_every must be >= 1, behind_frames >= 0 and stream_idle_s >= 0")
         return self
 
 
@@ -159,6 +162,7 @@ class MapperCore(ServiceCore):
         self.checkpoint_path = Path(ck) if ck else None
         self.book = book if book is not None else book_for(self.opts)  # keyframe flags (shared with the inbox)
         self.backlog: Callable[[], int] = lambda: 0  # frames queued before the core (the shell's inbox)
+        self.stream_idle: Callable[[], float] = lambda: 0.0  # seconds since a frame last arrived (the shell's inbox)
         self.init_seq: Optional[int] = None  # the newest frame consumed when the init stage ran
         self.window_iters = 0  # iterations of the windows since
 
@@ -349,7 +353,8 @@ class MapperCore(ServiceCore):
                     continue
                 break
             behind = self.behind()
-            if pose is not None and behind and self.mapper is not None and self.mapper.initialized \
+            streaming = self.stream_idle() < self.opts.stream_idle_s
+            if pose is not None and behind and streaming and self.mapper is not None and self.mapper.initialized \
                     and not self.book.is_keyframe(seq):
                 self.frames.popitem(last=False)  # catching up: keyframes only
                 self.counters.inc("frames_thinned")
