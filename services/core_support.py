@@ -84,6 +84,10 @@ class ServiceCore:
         self.last_error = ""
         self.camera_dict: Optional[dict] = None
         self.newest_seq = -1  # the newest frame number the core took (the head of the stream)
+        # seconds since a frame last arrived (the shell: its frames inbox, Inbox.idle). A core behind the
+        # camera drops work to keep pace only while frames keep coming; once the stream has ended or
+        # paused there is no camera to keep up with (default: always streaming)
+        self.stream_idle: Callable[[], float] = lambda: 0.0
 
     @property
     def ack(self) -> int:

@@ -201,6 +201,14 @@ def test_tracker_core_behind_the_camera_skips_every_other_frame_at_most_and_keep
     assert {s for s, m in first.items() if m.keyframe} <= set(tracked)
     r = ate(np.stack([first[s].c2w for s in tracked]), np.stack([ds[s].c2w for s in tracked]), "sim3")
     assert r["rmse_m"] < 0.01, r
+    # the same backlog after the stream has gone quiet (no frame for stream_idle_s): nothing to keep pace
+    # with, every frame waiting is tracked
+    quiet = TrackerCore()
+    quiet.backlog, quiet.stream_idle = (lambda: 1), (lambda: quiet.opts.stream_idle_s + 1.0)
+    answers = [m for k in range(len(ds))
+               for _, m in quiet.handle("frames", P.encode(P.frame_from_dataset(ds[k], seq=k, with_depth=False)))]
+    assert quiet.counters.get("frames_skipped_behind") == 0 and all(m.quality > 0 for m in answers)
+    assert {m.seq for m in answers} == set(range(len(ds)))
 
 
 def test_fmapping_up_paced_playback_neither_skips_nor_thins_and_fixed_rate_does(scene, tmp_path, monkeypatch):

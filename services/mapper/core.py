@@ -162,7 +162,6 @@ class MapperCore(ServiceCore):
         self.checkpoint_path = Path(ck) if ck else None
         self.book = book if book is not None else book_for(self.opts)  # keyframe flags (shared with the inbox)
         self.backlog: Callable[[], int] = lambda: 0  # frames queued before the core (the shell's inbox)
-        self.stream_idle: Callable[[], float] = lambda: 0.0  # seconds since a frame last arrived (the shell's inbox)
         self.init_seq: Optional[int] = None  # the newest frame consumed when the init stage ran
         self.window_iters = 0  # iterations of the windows since
 

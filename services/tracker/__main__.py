@@ -28,6 +28,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--skip-behind", type=int, default=1,
                    help="mono: skip (answer with quality 0) a frame when this many newer ones wait, never two in a "
                         "row, so that the poses keep pace with the camera (0 = never skip)")
+    p.add_argument("--stream-idle", type=float, default=2.0,
+                   help="mono: ... while frames keep coming: once none has arrived for this many seconds (the "
+                        "stream ended or paused), every frame waiting is tracked")
     p.add_argument("--ba-thread", default="on", choices=["on", "off"],
                    help="mono: keyframe bundle adjustment in a worker thread, merged between frames, so that a "
                         "keyframe does not hold up its pose (off: on the frame path, as fmapping slam)")
@@ -61,7 +64,8 @@ def main(argv=None, session=None, keys=None) -> int:
     cfg = load_tracker_config(args.config)
     opts = TrackerServiceOptions(max_buffer=args.max_buffer, use_depth=args.use_depth, frontend=args.frontend,
                                  anchor_source=args.anchor, state_path=args.state,
-                                 skip_behind=args.skip_behind, ba_thread=args.ba_thread == "on").validate()
+                                 skip_behind=args.skip_behind, stream_idle_s=args.stream_idle,
+                                 ba_thread=args.ba_thread == "on").validate()
     # frames thinned evenly when the inbox is full (a long gap loses the track; evenly spread gaps do not)
     with Service("tracker", args, capacities=CAPACITIES, max_bytes=MAX_BYTES, session=session, keys=keys,
                  thin=("frames",)) as svc:
@@ -71,6 +75,7 @@ def main(argv=None, session=None, keys=None) -> int:
 def serve(svc: Service, cfg, opts: TrackerServiceOptions, args) -> int:
     core = TrackerCore(cfg, opts, counters=svc.counters, on_bad_input=svc.report_bad_input)
     core.backlog = lambda: svc.inbox.size("frames")
+    core.stream_idle = lambda: svc.inbox.idle("frames")
     keys = svc.keys
     # checked before queueing: a bad or implausible message never displaces a real one
     svc.subscribe_control()

@@ -97,6 +97,9 @@ class TrackerServiceOptions:
     # never the frame after a lost one, so that the answers keep pace with the camera (0: never skip). A
     # keyframe is decided by tracking its frame, so a skipped frame is never one.
     skip_behind: int = 1
+    # ... while frames keep coming: once none has arrived for this long (the stream ended or paused), every
+    # frame waiting is tracked
+    stream_idle_s: float = 2.0
     # mono: the keyframe bundle adjustment in a worker thread, merged between frames (MonoConfig.ba_thread): a
     # keyframe no longer holds up its frame's pose. Off here (the poses then equal fmapping slam's exactly);
     # the service's CLI turns it on unless playback is paced.
@@ -105,8 +108,9 @@ class TrackerServiceOptions:
     def validate(self) -> "TrackerServiceOptions":
         if self.frontend not in ("mono", "map"):
             raise ValueError(f"tracker frontend must be 'mono' or 'map', got {self.frontend!r}")
-        if self.skip_behind < 0:
-            raise ValueError(f"skip_behind must be >= 0, got {self.skip_behind}")
+        if self.skip_behind < 0 or not self.stream_idle_s >= 0:
+            raise ValueError(f"skip_behind and stream_idle_s must be >= 0, got {self.skip_behind} and "
+                             f"{self.stream_idle_s}")
         return self
 
 
@@ -410,7 +414,8 @@ class TrackerCore(MapFrontend, ServiceCore):
         """Skip the frame at hand (see ``TrackerServiceOptions.skip_behind``)? Called once per tracked frame."""
         last = self.session.last
         skip = (self.opts.skip_behind > 0 and not self._skipped_last and last is not None and not last.lost
-                and len(self.waiting) + self.backlog() >= self.opts.skip_behind)
+                and len(self.waiting) + self.backlog() >= self.opts.skip_behind
+                and self.stream_idle() < self.opts.stream_idle_s)
         self._skipped_last = skip
         return skip
 
