@@ -306,7 +306,12 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         self.ba_merges += 1
         if self._loop_ba is not None and self._loop_ba[0] is prob:  # a loop closure's: back to the graph's scale
             loop, self._loop_ba = self._loop_ba, None
+            k = self._kf_index
+            was = self.store.kf_pose[k].copy() if k in self.store.kf_pose else None
             self._after_loop_ba(*loop[1:])
+            if was is not None:  # the motion model moves with the current keyframe (as at a keyframe)
+                d = self.store.kf_pose[k] @ inv_pose(was)
+                self.tracker.reset_motion([d @ p for p in self.tracker.motion_history])
             self._moved_all = True
         return True
 
