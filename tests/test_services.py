@@ -584,6 +584,39 @@ def test_mono_tracker_core_without_anchors_uses_the_unit_depth_convention(room32
     assert ate(est, np.stack([ds[k].c2w for k in range(len(ds))]), "sim3")["rmse_m"] < 0.015
 
 
+def test_mapper_unposed_init_waits_for_its_anchor_poses(room320):
+    """The mapper's unposed init (the tracker's ``map`` front end) fixes its first ``anchor_frames`` frames
+    by their anchor poses. A frame that comes before its anchor waits for it (up to ``anchor_wait`` later
+    frames) instead of entering the init at a guessed pose: anchors that arrive just after their frames give
+    the same map poses as anchors that arrive first (before: frame 0 at the identity, 1.7 m off)."""
+    from fmapping.datasets import open_dataset
+    from services.mapper.core import MapperCore, MapperServiceOptions
+
+    ds = open_dataset(room320)
+
+    def run(anchor_after: bool):
+        core = MapperCore(small_cfg(), MapperServiceOptions(pose_source="tracker", unposed_init=True,
+                                                            points_interval=1e9, checkpoint_every=0))
+        for i in range(8):
+            f = ds[i]
+            anchor = P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt"))
+            if not anchor_after:
+                core.handle("poses", anchor)
+            core.handle("frames", P.encode(P.frame_from_dataset(f, seq=i)))
+            if anchor_after:
+                core.handle("poses", anchor)
+        core.apply(P.Control("stop", {"reason": "end"}))
+        return core
+
+    first, after = run(False), run(True)
+    assert after.counters.get("anchor_poses") == first.counters.get("anchor_poses") == 2
+    a, b = first.mapper.frame_poses(), after.mapper.frame_poses()
+    assert sorted(a) == sorted(b) and len(a) >= 2
+    for k in a:
+        np.testing.assert_allclose(b[k], a[k], atol=1e-9, err_msg=f"frame {k}")
+    np.testing.assert_allclose(b[0], ds[0].c2w, atol=1e-6)
+
+
 def test_mono_tracker_core_holds_poses_until_the_late_anchor_and_releases_them_on_stop(room320):
     """A stream that stops before frame 14: the poses held for the late anchor leave on the
     ``stop`` control, at the bootstrap's scale, and every frame is answered once."""

@@ -65,6 +65,7 @@ class MapperServiceOptions:
     unposed_init: Optional[bool] = None  # frames may enter init without a pose (default: no)
     anchor_source: Optional[str] = None  # poses fixing the first frames (scale) of an unposed init; default gt
     anchor_frames: int = 2
+    anchor_wait: int = 2  # an unposed init's frame waits for its anchor pose until this many later frames came
     points_interval: float = 2.0  # seconds between PointsSnapshots
     max_points: int = 100_000  # per PointsSnapshot
     final_points: int = 500_000  # map.ply
@@ -141,6 +142,7 @@ class MapperCore(ServiceCore):
         self.frames: "OrderedDict[int, P.Frame]" = OrderedDict()
         self.poses: dict[int, P.Pose] = {}
         self.anchors: dict[int, P.Pose] = {}
+        self._ending = False  # finish() has begun: frames no longer wait for their anchor pose
         self.seq_of_fid: list[int] = []
         self.last_seq = -1  # newest frame integrated or dropped (the acknowledgement)
         self.version = 0
@@ -337,6 +339,9 @@ class MapperCore(ServiceCore):
                 pose = None
             if pose is None and unposed_ok and len(self.seq_of_fid) < self.opts.anchor_frames:
                 pose = self.anchors.pop(seq, None)
+                if pose is None and self.opts.anchor_source and not self._ending \
+                        and len(self.frames) + self.backlog() <= self.opts.anchor_wait:
+                    break  # its anchor is on its way: frames and anchor poses travel on different keys
             if pose is None and not unposed_ok:
                 waited = self.clock() - self._arrived.get(seq, self.clock())
                 timed_out = self.opts.pose_timeout > 0 and waited > self.opts.pose_timeout
@@ -456,6 +461,7 @@ class MapperCore(ServiceCore):
             return []
         out: list[Output] = []
         self.paused = False
+        self._ending = True  # no frame waits for an anchor pose any more
         out += self._integrate()
         if self.frames:  # frames still without a pose: they cannot be mapped
             self.counters.inc("frames_without_pose", len(self.frames))
@@ -493,7 +499,7 @@ class MapperCore(ServiceCore):
         self.latest_field = None
         self.latest_points = None
         self.latest_field_bytes = None
-        self.finished = False
+        self.finished = self._ending = False
         self.counters.inc("resets")
 
     # ------------------------------------------------------------ outputs
