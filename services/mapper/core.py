@@ -142,7 +142,7 @@ class MapperCore(ServiceCore):
         self.frames: "OrderedDict[int, P.Frame]" = OrderedDict()
         self.poses: dict[int, P.Pose] = {}
         self.anchors: dict[int, P.Pose] = {}
-        self._ending = False  # finish() has begun: frames no longer wait for their anchor pose
+        self._stopped = False  # finish() has begun: no frame waits for its anchor pose any more (as the tracker)
         self.seq_of_fid: list[int] = []
         self.last_seq = -1  # newest frame integrated or dropped (the acknowledgement)
         self.version = 0
@@ -339,7 +339,7 @@ class MapperCore(ServiceCore):
                 pose = None
             if pose is None and unposed_ok and len(self.seq_of_fid) < self.opts.anchor_frames:
                 pose = self.anchors.pop(seq, None)
-                if pose is None and self.opts.anchor_source and not self._ending \
+                if pose is None and self.opts.anchor_source and not self._stopped \
                         and len(self.frames) + self.backlog() <= self.opts.anchor_wait:
                     break  # its anchor is on its way: frames and anchor poses travel on different keys
             if pose is None and not unposed_ok:
@@ -461,7 +461,7 @@ class MapperCore(ServiceCore):
             return []
         out: list[Output] = []
         self.paused = False
-        self._ending = True  # no frame waits for an anchor pose any more
+        self._stopped = True  # no frame waits for an anchor pose any more
         out += self._integrate()
         if self.frames:  # frames still without a pose: they cannot be mapped
             self.counters.inc("frames_without_pose", len(self.frames))
@@ -499,7 +499,7 @@ class MapperCore(ServiceCore):
         self.latest_field = None
         self.latest_points = None
         self.latest_field_bytes = None
-        self.finished = self._ending = False
+        self.finished = self._stopped = False
         self.counters.inc("resets")
 
     # ------------------------------------------------------------ outputs
