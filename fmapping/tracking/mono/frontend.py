@@ -66,7 +66,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         self.loops_refused: list = []  # verified loops whose correction was too large to trust
         self._kf_images: dict = {}  # keyframe index -> grey image, for loop verification (bounded)
         self._moved_all = False  # the last keyframe's update moved every keyframe (a loop closure)
-        self._loop_ba: Optional[tuple] = None  # (problem, keyframes, old, graph size, loop record): in the worker
+        self._loop_ba = None  # a loop's bundle adjustment in the worker (loop_closing.PendingLoopBA)
         self._step = np.zeros(3)  # the current frame's rotation since the previous one (camera frame)
         # the keyframe BA in a worker thread (MonoConfig.ba_thread), merged between frames
         self._bg: Optional[BackgroundBA] = BackgroundBA(camera) if self.cfg.ba_thread else None
@@ -304,11 +304,11 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
             self.tracker.reset_motion([moves[self._kf_index] @ p for p in self.tracker.motion_history])
             self._rebuild_reference(dropped)
         self.ba_merges += 1
-        if self._loop_ba is not None and self._loop_ba[0] is prob:  # a loop closure's: back to the graph's scale
+        if self._loop_ba is not None and self._loop_ba.prob is prob:  # a loop closure's: back to the graph's scale
             loop, self._loop_ba = self._loop_ba, None
             k = self._kf_index
             was = self.store.kf_pose[k].copy() if k in self.store.kf_pose else None
-            self._after_loop_ba(*loop[1:])
+            self._after_loop_ba(loop.keyframes, loop.old, loop.graph_size, loop.record)
             if was is not None:  # the motion model moves with the current keyframe (as at a keyframe)
                 d = self.store.kf_pose[k] @ inv_pose(was)
                 self.tracker.reset_motion([d @ p for p in self.tracker.motion_history])

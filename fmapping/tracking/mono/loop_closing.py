@@ -2,14 +2,24 @@
 is verified on its landmarks and image; the keyframes since move by a pose graph, then a bundle adjustment."""
 from __future__ import annotations
 
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 
 from fmapping.geometry import inv_pose, orthonormalize, pose_distance
 from fmapping.tracking.loop import LoopMatch, cross_check, locate_in_keyframe, loop_candidates
-from fmapping.tracking.mono.store import solve_ba_problem
+from fmapping.tracking.mono.store import BAProblem, solve_ba_problem
 from fmapping.tracking.posegraph import optimize_pose_graph
+
+
+class PendingLoopBA(NamedTuple):
+    """A loop's bundle adjustment in the worker (``ba_thread``): what :meth:`LoopClosing._after_loop_ba`
+    needs once it is merged."""
+    prob: BAProblem
+    keyframes: list
+    old: int
+    graph_size: float
+    record: dict
 
 
 class LoopClosing:
@@ -104,7 +114,7 @@ class LoopClosing:
             prob = self.store.ba_problem(window=kfs, max_nfev=lc.loop_ba_max_nfev)
             if self._bg is not None and prob is not None:  # ba_thread: solved off the frame path
                 self._bg.submit(prob)
-                self._loop_ba = (prob, kfs, old, graph_size, out)
+                self._loop_ba = PendingLoopBA(prob, kfs, old, graph_size, out)
                 out["ba_in_worker"] = True
             elif prob is not None:
                 self.store.apply_ba(prob, solve_ba_problem(self.camera, prob))
