@@ -120,6 +120,22 @@ def distortion_loss(weights: Tensor, t: Tensor, t_near: Tensor, t_far: Tensor) -
     return (inter + intra).mean()
 
 
+def gaussian_blur(images: Tensor, sigma: float) -> Tensor:
+    """(V, H, W, C) images smoothed by a separable Gaussian of ``sigma`` px (radius 3 sigma, borders
+    replicated); ``sigma`` <= 0 returns them unchanged."""
+    if sigma <= 0:
+        return images
+    r = max(1, int(math.ceil(3 * sigma)))
+    x = torch.arange(-r, r + 1, dtype=images.dtype, device=images.device)
+    k = torch.exp(-0.5 * (x / sigma) ** 2)
+    k = k / k.sum()
+    c = images.shape[-1]
+    y = images.permute(0, 3, 1, 2)
+    y = F.conv2d(F.pad(y, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+    y = F.conv2d(F.pad(y, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+    return y.permute(0, 2, 3, 1).contiguous()
+
+
 def patch_offsets(radius: int = 1, dilation: float = 1.0, device=None, dtype=torch.float32) -> Tensor:
     """Pixel offsets (P, 2) of a (2r+1)^2 square patch, spaced ``dilation`` pixels."""
     r = torch.arange(-radius, radius + 1, device=device, dtype=dtype) * dilation

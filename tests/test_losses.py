@@ -6,7 +6,8 @@ import torch
 from fmapping.camera import PinholeCamera
 from fmapping.geometry import make_pose
 from fmapping.losses import (
-    depth_l1_loss, distortion_loss, expected_depth_l1, patch_offsets, photometric_loss, project_patches,
+    depth_l1_loss, distortion_loss, expected_depth_l1, gaussian_blur, patch_offsets,
+    photometric_loss, project_patches,
     sample_consistency_cost, sample_frames, sample_views, warping_loss,
 )
 
@@ -263,3 +264,28 @@ def test_distortion_loss_prefers_one_peak_to_a_spread():
     # two separated peaks: 2 * 0.475^2 * |s_5 - s_25| (+ the small intra terms)
     s = (t[0] - 0.1) / 4.0
     assert l2 > 2 * 0.475 ** 2 * float(s[25] - s[5])
+
+
+def test_gaussian_blur_matches_the_explicit_weighted_sum():
+    """The separable blur equals the 2-D sum of Gaussian-weighted neighbours (borders replicated), keeps a
+    constant image, and sigma 0 is the identity."""
+    import math
+
+    gen = torch.Generator().manual_seed(0)
+    imgs = torch.rand(2, 9, 11, 3, generator=gen, dtype=torch.float64)
+    sigma = 1.3
+    r = math.ceil(3 * sigma)
+    ref = torch.zeros_like(imgs)
+    norm = 0.0
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            w = math.exp(-0.5 * (dx * dx + dy * dy) / sigma ** 2)
+            ys = torch.arange(9).add(dy).clamp(0, 8)
+            xs = torch.arange(11).add(dx).clamp(0, 10)
+            ref += w * imgs[:, ys][:, :, xs]
+            norm += w
+    torch.testing.assert_close(gaussian_blur(imgs, sigma), ref / norm)
+    flat = torch.full((1, 5, 6, 3), 0.4, dtype=torch.float64)
+    torch.testing.assert_close(gaussian_blur(flat, 2.0), flat)
+    assert gaussian_blur(imgs, 0.0) is imgs
+

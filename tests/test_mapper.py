@@ -21,6 +21,7 @@ def tiny_config(**kw) -> MapperConfig:
         init_frames=6, init_rounds=((0, 24), (3, 36)), init_iters_per_round=60, optimize_init_poses=False,
         window_size=8, n_global_keyframes=3, new_frames_per_window=3, iters_per_window=15, keyframe_every=3,
         rays_per_iter=384, n_coarse=24, n_fine=12, pc_rays=192, final_global_iters=45, seed=0, device="cpu",
+        consistency_blur=0.0,  # at 64 x 48 px, the default 1-px blur is 5 px of a 320-px frame: most of the texture
     )
     base.update(kw)
     return MapperConfig(**base)
@@ -290,6 +291,49 @@ def test_exposure_compensation_recovers_known_gain_and_offset():
     assert off.exposure(3) == (pytest.approx(np.ones(3)), pytest.approx(np.zeros(3)))
 
 
+def test_a_frame_after_an_exposure_jump_starts_at_its_new_gain():
+    """Auto exposure jumps between frames 7 and 8 (gains x1.3 / x1.15 / x0.85): the frames that enter
+    the first window update after the init start their colour gain from the previous frame's colours at
+    the same surface points, so right after that update their gain relative to frame 7's is within 0.02
+    of the jump. Starting from frame 7's, 15 iterations at the exposure learning rate (0.001) move them
+    0.015 at most."""
+    scene, cam, c2w, views = tiny_scene(12, size=(80, 60))
+    jump = np.array([1.3, 1.15, 0.85])
+    m = Mapper(tiny_config(init_frames=8), cam, aabb=room_aabb(scene))
+    st = None
+    for i in range(11):
+        seen = views[i][0] / 255.0 * (jump if i >= 8 else 1.0)
+        st = m.add_frame(np.round(np.clip(seen, 0, 1) * 255).astype(np.uint8), c2w[i], i / 30) or st
+    assert st is not None and st.kind == "window" and st.frames[-3:] == [8, 9, 10]
+    before, _ = m.exposure(7)  # the init's estimate (its gauge drifts from frame 0's by a few percent)
+    for i in (8, 9, 10):
+        gain, _ = m.exposure(i)
+        assert np.abs(gain / before - jump).max() < 0.02, (i, gain / before)  # measured: 0.008 at most
+
+
+def test_colour_gain_fit_recovers_a_known_gain_despite_outliers():
+    """observed = g * c + b with a known per-channel gain g and the offset b given: the trimmed least
+    squares recovers g although 30 % of the pixels are unrelated (unmapped or occluded parts); the plain
+    fit of all pixels does not. Too few pixels or an absurd gain give None (the caller keeps its start)."""
+    from fmapping.mapping.exposure import fit_colour_gain
+
+    gen = torch.Generator().manual_seed(3)
+    c = 0.1 + 0.7 * torch.rand(1200, 3, generator=gen)
+    g, b = torch.tensor([1.18, 0.91, 1.32]), torch.tensor([0.02, -0.01, 0.03])
+    obs = g * c + b + 0.004 * torch.randn(1200, 3, generator=gen)
+    bad = torch.rand(1200, generator=gen) < 0.3
+    obs[bad] = torch.rand(int(bad.sum()), 3, generator=gen)
+    fit = fit_colour_gain(obs, c, b)
+    torch.testing.assert_close(fit[:3], g - 1, atol=0.01, rtol=0)
+    torch.testing.assert_close(fit[3:], b)  # held
+    plain = fit_colour_gain(obs, c, b, rounds=1)  # one round: no pixel dropped
+    assert (plain[:3] - (g - 1)).abs().max() > 0.03, plain
+    assert fit_colour_gain(obs[:40], c[:40], b) is None
+    assert fit_colour_gain(obs * 10, c, b) is None  # gain ~10: outside 0.25..4
+    with pytest.raises(ValueError, match="fit_colour_gain"):
+        fit_colour_gain(obs[:, :2], c[:, :2], b)
+
+
 def test_image_store_keeps_keyframes_losslessly_compressed_and_decodes_them_on_use(dataset):
     """Keyframes beyond the local window are kept as PNG: the very pixels come back (lossless), they take
     fewer bytes than raw, decoded ones stay in a bounded cache, and a state dict round-trips either kind."""
@@ -363,3 +407,12 @@ def test_the_final_map_is_exported_from_the_keyframes_and_the_newest_frames(data
     map_points(m, 1000, final=True)
     map_mesh(m, 16)
     assert seen["points"] == seen["mesh"] == m.view_ids()
+
+
+
+@pytest.mark.parametrize("kw,match", [({"exposure_start": "guess"}, "exposure_start"),
+                                      ({"consistency_blur": -1.0}, "consistency_blur"),
+                                      ({"consistency_blur": float("nan")}, "consistency_blur")])
+def test_bad_exposure_start_or_blur_is_named(kw, match):
+    with pytest.raises(ValueError, match=match):
+        MapperConfig(**kw).validate()

@@ -63,6 +63,12 @@ class MapperConfig:
     pc_rays: int = 512  # rays (of rays_per_iter) that get the per-sample cost
     pc_views: int = 4  # other window views the per-sample cost is computed in
     pc_radius: int = 0  # patch radius of the per-sample cost
+    # Gaussian sigma (px) of the images the warping and photo-consistency losses compare (0: the raw images): noise,
+    # JPEG and each frame's own motion blur disagree between views at the finest scale. fmapping map --poses gt,
+    # RGB only, wide synthetic seeds 0-4, completion ratio: 0 -> 1.0 px 69.2/66.0/72.5/63.9/63.7 ->
+    # 75.8/74.2/80.0/69.1/64.8 % (0.6 px: 72.9/72.5/73.6/68.7/58.0); the default room 98.1 -> 96.8 % (0.6 px: 97.6);
+    # 7-Scenes dev 50.1 -> 51.4 %, accuracy 13.7 -> 12.5 cm
+    consistency_blur: float = 1.0
     tv_weight: float = 0.0
     l1_weight: float = 0.0
     distortion_weight: float = 0.0  # mip-NeRF 360 distortion loss on the colour rays (compact termination, no fog)
@@ -82,6 +88,9 @@ class MapperConfig:
     exposure: bool = True
     lr_exposure: float = 0.001
     exposure_reg: float = 0.01  # pull of (a, b) towards 0 (no change)
+    # where a frame's (a, b) start when it enters its first window update (fmapping.mapping.exposure): "fit" (the
+    # previous frame's, gains re-fitted to its colours) | "previous" (the previous frame's) | "none" (no change)
+    exposure_start: str = "fit"
     # --- scene bounds
     near: float = 0.1
     far: float = 6.0
@@ -113,6 +122,10 @@ class MapperConfig:
             raise ValueError("MapperConfig: sparse_depth_weight, sparse_rays, sparse_fill_weight, lr_exposure, "
                              "exposure_reg and distortion_weight must be >= 0")
         self.sparse.validate()
+        if self.exposure_start not in ("fit", "previous", "none"):
+            raise ValueError(f"MapperConfig.exposure_start must be fit, previous or none, got {self.exposure_start!r}")
+        if not self.consistency_blur >= 0:
+            raise ValueError(f"MapperConfig.consistency_blur must be >= 0, got {self.consistency_blur}")
         if self.warp_depth not in ("far", "expected"):
             raise ValueError(f"MapperConfig.warp_depth must be 'far' or 'expected', got {self.warp_depth!r}")
         if not 0 < self.near < self.far:

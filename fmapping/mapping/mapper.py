@@ -24,6 +24,7 @@ from fmapping.field import build_field
 from fmapping.geometry import se3_inverse
 from fmapping.mapping.batch_render import render_batch
 from fmapping.mapping.config import MapperConfig
+from fmapping.mapping.exposure import fit_colour_gain
 from fmapping.mapping.optimisation import OptimisationStep
 from fmapping.mapping.scene_box import aabb_from_depth, aabb_from_poses, points_box
 from fmapping.mapping.state_io import MapperStateIO
@@ -305,6 +306,49 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
             for g in self._opt.param_groups:
                 if g.get("name") == "exposure":
                     g["params"].append(p)
+
+    @torch.no_grad()
+    def _start_exposures(self, ids: list[int], grid: tuple[int, int] = (40, 30)) -> None:
+        """Where frames ``ids`` (entering their first window update) start their colour estimate: the
+        previous frame's, with the gains re-fitted (:func:`fit_colour_gain`) to their pixels against the
+        previous frame's colours, exposure undone, at the same surface points: a ``grid`` of pixels lifted to
+        the map's rendered depth and projected into the previous frame. The map gives only the
+        correspondence: its colours are untrained where the camera has just arrived."""
+        if not self.cfg.exposure or self.field is None or self.cfg.exposure_start == "none":
+            return
+        cam = self.camera
+        us = ((torch.arange(grid[0], dtype=torch.float32) + 0.5) * cam.width / grid[0]).floor()
+        vs = ((torch.arange(grid[1], dtype=torch.float32) + 0.5) * cam.height / grid[1]).floor()
+        gv, gu = torch.meshgrid(vs.clamp_max(cam.height - 1), us.clamp_max(cam.width - 1), indexing="ij")
+        pu, pv = gu.reshape(-1).long(), gv.reshape(-1).long()
+        uv = torch.stack([pu, pv], -1).to(torch.float32)
+        for i in sorted(ids):
+            p, prev = self._exposure.get(i), self._exposure.get(i - 1)
+            if p is None or not p.requires_grad or prev is None:
+                continue
+            start = prev.detach().clone()
+            p.copy_(start)
+            if self.cfg.exposure_start == "previous" or (i - 1) not in self._images:
+                continue
+            c2w = self._poses[i].to(torch.float32)
+            origins, dirs = cam.rays(c2w, uv)
+            out, (_, _, hit) = render_batch(self.field, self.aabb, self.cfg, origins.to(self.device),
+                                            dirs.to(self.device), "pdf", self.cfg.n_coarse, self.cfg.n_fine,
+                                            grad=False, color=False)
+            acc = out.acc.cpu()
+            pts = (origins + dirs * (out.depth.cpu() / acc.clamp_min(1e-6))[:, None]).double().numpy()
+            uv_r, z_r = cam.world_to_pixels(self._poses[i - 1].numpy(), pts)
+            ru, rv = np.round(uv_r[:, 0]).astype(np.int64), np.round(uv_r[:, 1]).astype(np.int64)
+            ok = (hit.cpu() & (acc > 0.9)).numpy() & (z_r > self.cfg.near) & (ru >= 0) & (ru < cam.width) \
+                & (rv >= 0) & (rv < cam.height)
+            ok_t = torch.from_numpy(ok)
+            obs = self._images[i][pv[ok_t], pu[ok_t]].to(torch.float32) / 255.0
+            ref = self._images[i - 1][torch.from_numpy(rv[ok]), torch.from_numpy(ru[ok])].to(torch.float32) / 255.0
+            e = start.cpu()
+            ref = (ref - e[3:]) / (1 + e[:3]).clamp_min(0.1)  # the previous frame's colours, its exposure undone
+            fit = fit_colour_gain(obs, ref, e[3:])
+            if fit is not None:
+                p.copy_(fit.to(p))
 
     def _exposure_of(self, ids: list[int]) -> Optional[Tensor]:
         """(V, 6) per-frame colour parameters of frames ``ids`` (differentiable), None when off."""

@@ -29,8 +29,8 @@ from torch import Tensor
 
 from fmapping.cancel import check_stop
 from fmapping.geometry import se3_exp
-from fmapping.losses import (distortion_loss, expected_depth_l1, photometric_loss, sample_consistency_cost,
-                             sparse_depth_loss, warping_loss)
+from fmapping.losses import (distortion_loss, expected_depth_l1, gaussian_blur, photometric_loss,
+                             sample_consistency_cost, sparse_depth_loss, warping_loss)
 from fmapping.mapping.batch_render import render_batch
 from fmapping.mapping.window_schedule import WindowStats
 
@@ -85,12 +85,13 @@ class OptimisationStep:
 
     @torch.no_grad()
     def _scene_images(self, ids: list[int], imgs: Tensor) -> Tensor:
-        """``imgs`` with each frame's current exposure undone (observed = (1 + a) c + b)."""
+        """``imgs`` with each frame's current exposure undone (observed = (1 + a) c + b), smoothed by
+        ``consistency_blur``: the images the losses that compare views with each other see."""
         expo = self._exposure_of(ids)
-        if expo is None:
-            return imgs
-        e = expo.detach()
-        return (imgs - e[:, None, None, 3:]) / (1 + e[:, None, None, :3]).clamp_min(0.1)
+        if expo is not None:
+            e = expo.detach()
+            imgs = (imgs - e[:, None, None, 3:]) / (1 + e[:, None, None, :3]).clamp_min(0.1)
+        return gaussian_blur(imgs, self.cfg.consistency_blur)
 
     def _sparse_batch(self, ids: list[int]) -> Optional[tuple]:
         """The triangulated points seen by frames ``ids``: (window index, pixel, depth, weight) tensors."""

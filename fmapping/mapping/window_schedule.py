@@ -140,6 +140,7 @@ class WindowSchedule:
                 self._keyframes.append(old)
             self._drop_image_if_unused(old)
         self._grow_box()
+        self._start_exposures(new)
         global_ids = self._select_global(self._local, cfg.n_global_keyframes)
         ids = global_ids + list(self._local)
         self._window = ids
