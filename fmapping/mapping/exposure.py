@@ -18,6 +18,12 @@ import torch
 from torch import Tensor
 
 
+def undo_exposure(observed: Tensor, expo: Tensor) -> Tensor:
+    """Scene colours ``(observed - b) / (1 + a)`` of colours (..., 3) seen with the colour numbers ``expo``
+    (..., 6) = (a, b) (broadcast against ``observed``; gains below 0.1 are clamped)."""
+    return (observed - expo[..., 3:]) / (1 + expo[..., :3]).clamp_min(0.1)
+
+
 def fit_colour_gain(observed: Tensor, rendered: Tensor, offset: Tensor, min_points: int = 64, clip: float = 3.0,
                     rounds: int = 3, gain_range: tuple[float, float] = (0.25, 4.0)) -> Optional[Tensor]:
     """Per-channel gain ``g`` of ``observed ~ g * rendered + offset`` (``offset`` (3,) held), by least squares

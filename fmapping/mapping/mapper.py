@@ -24,7 +24,7 @@ from fmapping.field import build_field
 from fmapping.geometry import se3_inverse
 from fmapping.mapping.batch_render import render_batch
 from fmapping.mapping.config import MapperConfig
-from fmapping.mapping.exposure import fit_colour_gain
+from fmapping.mapping.exposure import fit_colour_gain, undo_exposure
 from fmapping.mapping.optimisation import OptimisationStep
 from fmapping.mapping.scene_box import aabb_from_depth, aabb_from_poses, points_box
 from fmapping.mapping.state_io import MapperStateIO
@@ -345,8 +345,7 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
             obs = self._images[i][pv[ok_t], pu[ok_t]].to(torch.float32) / 255.0
             ref = self._images[i - 1][torch.from_numpy(rv[ok]), torch.from_numpy(ru[ok])].to(torch.float32) / 255.0
             e = start.cpu()
-            ref = (ref - e[3:]) / (1 + e[:3]).clamp_min(0.1)  # the previous frame's colours, its exposure undone
-            fit = fit_colour_gain(obs, ref, e[3:])
+            fit = fit_colour_gain(obs, undo_exposure(ref, e), e[3:])  # against the previous frame's scene colours
             if fit is not None:
                 p.copy_(fit.to(p))
 

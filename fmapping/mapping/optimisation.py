@@ -32,6 +32,7 @@ from fmapping.geometry import se3_exp
 from fmapping.losses import (distortion_loss, expected_depth_l1, gaussian_blur, photometric_loss,
                              sample_consistency_cost, sparse_depth_loss, warping_loss)
 from fmapping.mapping.batch_render import render_batch
+from fmapping.mapping.exposure import undo_exposure
 from fmapping.mapping.window_schedule import WindowStats
 
 
@@ -89,8 +90,7 @@ class OptimisationStep:
         ``consistency_blur``: the images the losses that compare views with each other see."""
         expo = self._exposure_of(ids)
         if expo is not None:
-            e = expo.detach()
-            imgs = (imgs - e[:, None, None, 3:]) / (1 + e[:, None, None, :3]).clamp_min(0.1)
+            imgs = undo_exposure(imgs, expo.detach()[:, None, None])
         return gaussian_blur(imgs, self.cfg.consistency_blur)
 
     def _sparse_batch(self, ids: list[int]) -> Optional[tuple]:
