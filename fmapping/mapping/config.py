@@ -89,7 +89,7 @@ class MapperConfig:
     lr_exposure: float = 0.001
     exposure_reg: float = 0.01  # pull of (a, b) towards 0 (no change)
     # where a frame's (a, b) start when it enters its first window update (fmapping.mapping.exposure): "fit" (the
-    # previous frame's, gains re-fitted to its colours) | "previous" (the previous frame's) | "none" (no change)
+    # previous frame's, gains re-fitted to its colours) | "none" (no change, as before 2026-12-04)
     exposure_start: str = "fit"
     # --- scene bounds
     near: float = 0.1
@@ -122,8 +122,8 @@ class MapperConfig:
             raise ValueError("MapperConfig: sparse_depth_weight, sparse_rays, sparse_fill_weight, lr_exposure, "
                              "exposure_reg and distortion_weight must be >= 0")
         self.sparse.validate()
-        if self.exposure_start not in ("fit", "previous", "none"):
-            raise ValueError(f"MapperConfig.exposure_start must be fit, previous or none, got {self.exposure_start!r}")
+        if self.exposure_start not in ("fit", "none"):
+            raise ValueError(f"MapperConfig.exposure_start must be fit or none, got {self.exposure_start!r}")
         if not self.consistency_blur >= 0:
             raise ValueError(f"MapperConfig.consistency_blur must be >= 0, got {self.consistency_blur}")
         if self.warp_depth not in ("far", "expected"):

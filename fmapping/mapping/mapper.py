@@ -328,7 +328,7 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
                 continue
             start = prev.detach().clone()
             p.copy_(start)
-            if self.cfg.exposure_start == "previous" or (i - 1) not in self._images:
+            if (i - 1) not in self._images:
                 continue
             c2w = self._poses[i].to(torch.float32)
             origins, dirs = cam.rays(c2w, uv)
