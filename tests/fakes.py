@@ -89,6 +89,9 @@ class FakeSession:
     def declare_queryable(self, key, cb):
         return self._Decl()
 
+    def get(self, key, timeout=None):  # nobody answers a query
+        return []
+
     def deliver(self, key: str, data: bytes, sub_key: str = None) -> None:
         for cb in self.subs[sub_key or key]:
             cb(self._Sample(key, data))

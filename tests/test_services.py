@@ -638,6 +638,37 @@ def test_mono_tracker_core_holds_poses_until_the_late_anchor_and_releases_them_o
     np.testing.assert_allclose(out[0][1].c2w, ds[0].c2w, atol=1e-9)
 
 
+def test_the_tracker_service_publishes_what_a_stop_releases(room320):
+    """The service shell around the core: the poses a ``stop`` releases (held for the late anchor here; a last
+    bundle adjustment's in general) are published, not only those answering frames. Before, a stream shorter
+    than the late anchor ended with no tracker pose at all."""
+    from fakes import FakeSession
+
+    from fmapping.datasets import open_dataset
+    from services.tracker.__main__ import main
+
+    ds = open_dataset(room320)
+    keys, session = P.Keys("shell"), FakeSession()
+    done: dict = {}
+    t = threading.Thread(target=lambda: done.update(rc=main(
+        ["--query-timeout", "0.1", "--first-message-timeout", "60", "--ba-thread", "off", "--skip-behind", "0"],
+        session=session, keys=keys)), daemon=True)
+    t.start()
+    while keys.frames not in session.subs:  # subscribed
+        time.sleep(0.01)
+    for i in range(11):
+        f = ds[i]
+        session.deliver(keys.poses("gt"), P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
+        session.deliver(keys.frames, P.encode(P.frame_from_dataset(f, seq=i)))
+    time.sleep(1.0)
+    assert session.published.get(keys.poses("tracker"), []) == []  # held for the late anchor (frame 14)
+    session.deliver(keys.control, P.encode(P.Control(command="stop")))
+    t.join(60)
+    assert done.get("rc") == 0
+    poses = [P.decode(b, P.Pose) for b in session.published[keys.poses("tracker")]]
+    assert sorted(p.seq for p in poses) == list(range(11)) and all(p.quality > 0 for p in poses)
+
+
 def test_mono_tracker_core_restarts_a_failed_bootstrap_and_answers_its_frames(room320):
     """A camera that does not move gives the bootstrap no parallax: after init_max_frames the
     bootstrap gives up, its frames are answered as unusable (quality 0) and it starts again;

@@ -118,6 +118,25 @@ def _errors_by_part(out: Path, scene: Path, split: int) -> str:
 
 
 @pytest.mark.slow
+def test_a_service_process_shares_the_launchers_session_in_a_group_of_its_own_at_its_priority(tmp_path):
+    """A child started as the launcher starts services: its own process group (a terminal's Ctrl-C reaches
+    only the launcher), the launcher's session (with autogroup scheduling each session is scheduled as one
+    group, so a session of its own would make its nice value meaningless against the other services), and
+    its nice value lowered by the increment."""
+    probe = ("import json, os, pathlib; a = pathlib.Path('/proc/self/autogroup'); "
+             "print(json.dumps([os.getpid(), os.getpgrp(), os.getsid(0), os.nice(0), "
+             "a.read_text().split()[0] if a.exists() else None]))")
+    proc = supervise.Proc("view", [sys.executable, "-c", probe], tmp_path, dict(os.environ))
+    assert proc.popen.wait(timeout=60) == 0
+    pid, pgrp, sid, nice, group = json.loads(proc.log_path.read_text().strip().splitlines()[-1])
+    assert pgrp == pid != os.getpgrp()
+    assert sid == os.getsid(0)
+    assert nice == min(os.nice(0) + supervise.NICE["view"], 19)
+    mine = Path("/proc/self/autogroup")
+    if mine.exists():
+        assert group == mine.read_text().split()[0]
+
+
 def test_kill_9_of_the_mapper_loses_at_most_one_window_against_an_undisturbed_run(fault_scene, tmp_path):
     """kill -9 of the mapper mid-run under fmapping up (tracker poses): restarted, it resumes from its
     checkpoint, play sends the frames after the checkpoint again (the tracker answers them again with
@@ -362,6 +381,7 @@ def test_a_restarted_mono_tracker_relocalises_against_its_saved_keyframe(room320
     state = tmp_path / "tracker" / "state.npz"
     first = TrackerCore(opts=TrackerServiceOptions(state_path=str(state)))
     _feed_frames(first, ds, range(cut))
+    assert first.flush_state()  # written by a thread of its own, off the frame path
     assert state.is_file() and first.counters.get("states_saved") >= 1
     from services.tracker.resume_state import load_resume_state
 
@@ -419,6 +439,28 @@ def test_a_state_file_that_is_not_one_is_ignored(tmp_path):
         assert TrackerCore(opts=TrackerServiceOptions(state_path=str(state))).resume_state is None
     np.savez(state, k0_index=np.array(3))  # an npz without the keyframe's arrays
     assert TrackerCore(opts=TrackerServiceOptions(state_path=str(state))).resume_state is None
+
+
+def test_the_state_writer_keeps_the_newest_and_names_a_failure(tmp_path):
+    """The tracker's keyframes are written by a thread of their own: after a flush the file holds the newest
+    state given, a state waiting while another is written is replaced by a newer one, and a file that cannot
+    be written is named in ``error`` (nothing raised on the frame path)."""
+    from services.tracker.resume_state import StateWriter, load_resume_state
+
+    def state(k: int) -> list:
+        return [{"index": k, "gray": np.full((24, 32), k, np.uint8), "c2w": np.eye(4), "world": np.ones((3, 3)),
+                 "uv": np.ones((3, 2)), "prev_index": k - 1, "prev_c2w": np.eye(4)}]
+
+    w = StateWriter(tmp_path / "tracker" / "state.npz")
+    for k in range(1, 6):
+        w.put(state(k))
+    assert w.flush() and w.error is None and 1 <= w.saved <= 5
+    assert load_resume_state(tmp_path / "tracker" / "state.npz")[-1]["index"] == 5
+    (tmp_path / "taken").write_text("a file where the state's folder should be")
+    bad = StateWriter(tmp_path / "taken" / "state.npz")
+    bad.put(state(1))
+    assert bad.close() and bad.saved == 0 and "tracker state not saved" in bad.error
+    assert w.close() and w.saved >= 1
 
 
 def test_the_tracker_answers_a_frame_sent_again_with_the_pose_it_gave_it(room320):

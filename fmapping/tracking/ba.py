@@ -78,14 +78,26 @@ def block_sum(index: np.ndarray, blocks: np.ndarray, n: int) -> np.ndarray:
     return np.bincount(flat, weights=blocks.reshape(len(index), k).ravel(), minlength=n * k).reshape((n,) + shape)
 
 
+def same_point_pairs(point_of: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every ordered pair (a, b) of observations of the same point (a == b included), as two index
+    arrays: the pose-pose blocks of the Schur complement, one per pair."""
+    f = len(point_of)
+    order = np.argsort(point_of, kind="stable")
+    ps = point_of[order]
+    first = np.searchsorted(ps, ps, "left")
+    count = np.searchsorted(ps, ps, "right") - first
+    a = np.repeat(np.arange(f), count)
+    b = np.repeat(first, count) + np.arange(len(a)) - np.repeat(np.cumsum(count) - count, count)
+    return order[a], order[b]
+
+
 @dataclass
 class NormalEquations:
     """Gauss-Newton normal equations of a BA problem in block form: free poses (6 each), points (3 each).
 
     ``hpp`` (P, 6, 6) and ``hxx`` (M, 3, 3) are the block diagonals (an observation involves
     one pose and one point), ``gp`` (P, 6) / ``gx`` (M, 3) the gradients, and the pose-point
-    coupling has one 6x3 block ``hpx`` per observation of a free pose (``pose_of``, ``point_of``),
-    also scattered into the dense (6P, 3M) matrix ``hpx_dense`` at the flat positions ``at``."""
+    coupling has one 6x3 block ``hpx`` per observation of a free pose (``pose_of``, ``point_of``)."""
     hpp: np.ndarray
     gp: np.ndarray
     hxx: np.ndarray
@@ -93,15 +105,10 @@ class NormalEquations:
     hpx: np.ndarray
     pose_of: np.ndarray
     point_of: np.ndarray
-    at: np.ndarray
-    hpx_dense: np.ndarray
-
-    def dense(self, blocks: np.ndarray) -> np.ndarray:
-        """Per-observation (6, 3) blocks scattered like ``hpx`` into a (6P, 3M) matrix."""
-        return _scatter(self.at, blocks, len(self.hpp), len(self.hxx))
 
 
 def _scatter(at: np.ndarray, blocks: np.ndarray, n_free: int, n_points: int) -> np.ndarray:
+    """Per-observation (6, 3) blocks summed into a dense (6P, 3M) matrix at the flat positions ``at``."""
     size = 6 * n_free * 3 * n_points
     return np.bincount(at, weights=blocks.ravel(), minlength=size).reshape(6 * n_free, 3 * n_points)
 
@@ -122,43 +129,60 @@ def normal_equations(jp: np.ndarray, jx: np.ndarray, r: np.ndarray, w: np.ndarra
     jpw_t = _t(jp[fo] * w[fo, None, None])  # (F, 6, 2)
     hpp = block_sum(pose_col[fo], jpw_t @ jp[fo], n_free)
     gp = block_sum(pose_col[fo], (jpw_t @ r[fo, :, None])[..., 0], n_free)
-    pose_of, point_of, hpx = pose_col[fo], point[fo], jpw_t @ jx[fo]
-    rows = 6 * pose_of[:, None, None] + np.arange(6)[None, :, None]
-    cols = 3 * point_of[:, None, None] + np.arange(3)[None, None, :]
-    at = (rows * (3 * n_points) + cols).ravel()
-    return NormalEquations(hpp, gp, hxx, gx, hpx, pose_of, point_of, at, _scatter(at, hpx, n_free, n_points))
+    return NormalEquations(hpp, gp, hxx, gx, jpw_t @ jx[fo], pose_col[fo], point[fo])
+
+
+DENSE_SCHUR_MAX = 50_000  # free poses x points up to which Hpx Hxx^-1 Hxp is one dense product
+
+
+def _hpx_hinv_hxp(ne: NormalEquations, u: np.ndarray) -> np.ndarray:
+    """``Hpx Hxx^-1 Hxp`` (6P, 6P) from the per-observation blocks ``u = Hpx_o Hxx^-1``. A window
+    BA (few poses) takes one product of dense (6P, 3M) matrices (repeated observations summed); a
+    large one (a loop's: tens of poses and thousands of points, where those matrices reach tens of
+    MB and the product took 3 x longer) sums one 6x6 block per pair of observations of the same
+    point into its pose pair (:func:`same_point_pairs`)."""
+    nf, m = len(ne.hpp), len(ne.hxx)
+    if nf * m <= DENSE_SCHUR_MAX:
+        rows = 6 * ne.pose_of[:, None, None] + np.arange(6)[None, :, None]
+        cols = 3 * ne.point_of[:, None, None] + np.arange(3)[None, None, :]
+        at = (rows * (3 * m) + cols).ravel()  # each block's entries in the (6P, 3M) matrix, flat
+        return _scatter(at, u, nf, m) @ _scatter(at, ne.hpx, nf, m).T
+    a, b = same_point_pairs(ne.point_of)
+    blocks = block_sum(ne.pose_of[a] * nf + ne.pose_of[b], u[a] @ _t(ne.hpx[b]), nf * nf)
+    return blocks.reshape(nf, nf, 6, 6).transpose(0, 2, 1, 3).reshape(6 * nf, 6 * nf)
 
 
 def damped_step(ne: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray]:
     """Solve the Levenberg-Marquardt system (diagonal scaled by ``1 + lam``) for the pose and point
-    updates, the points eliminated by the Schur complement ``S = Hpp - Hpx Hxx^-1 Hxp``, one
-    product of dense (6P, 3M) matrices (``NormalEquations.hpx_dense``).
-    Returns (dp (P, 6), dx (M, 3)); raises ``np.linalg.LinAlgError`` when S is singular."""
+    updates, the points eliminated by the Schur complement ``S = Hpp - Hpx Hxx^-1 Hxp``
+    (:func:`_hpx_hinv_hxp`). Returns (dp (P, 6), dx (M, 3)); raises ``np.linalg.LinAlgError``
+    when S is singular."""
     nf, m = len(ne.hpp), len(ne.hxx)
     hxx_d = ne.hxx + lam * np.eye(3) * (np.einsum("mii->mi", ne.hxx)[:, :, None] + 1e-9)
     hinv = np.linalg.inv(hxx_d)
     if nf == 0:
         return np.zeros((0, 6)), -(hinv @ ne.gx[:, :, None])[..., 0]
-    hpx = ne.hpx_dense
-    hpx_hinv = ne.dense(ne.hpx @ hinv[ne.point_of])  # Hpx Hxx^-1 (Hxx is block diagonal)
-    schur = -(hpx_hinv @ hpx.T)
+    u = ne.hpx @ hinv[ne.point_of]  # (F, 6, 3): Hpx_o Hxx^-1 of its point
+    schur = -_hpx_hinv_hxp(ne, u)
     hpp_d = ne.hpp + lam * np.eye(6) * (np.einsum("pii->pi", ne.hpp)[:, :, None] + 1e-9)
-    for a in range(nf):
-        schur[6 * a:6 * a + 6, 6 * a:6 * a + 6] += hpp_d[a]
-    rhs = -ne.gp.reshape(-1) + hpx_hinv @ ne.gx.reshape(-1)
-    dp = np.linalg.solve(schur, rhs)
-    dx = -(hinv @ (ne.gx + (hpx.T @ dp).reshape(m, 3))[:, :, None])[..., 0]
-    return dp.reshape(nf, 6), dx
+    for p in range(nf):
+        schur[6 * p:6 * p + 6, 6 * p:6 * p + 6] += hpp_d[p]
+    rhs = -ne.gp + block_sum(ne.pose_of, (u @ ne.gx[ne.point_of][:, :, None])[..., 0], nf)
+    dp = np.linalg.solve(schur, rhs.reshape(-1)).reshape(nf, 6)
+    back = block_sum(ne.point_of, (_t(ne.hpx) @ dp[ne.pose_of][:, :, None])[..., 0], m)
+    dx = -(hinv @ (ne.gx + back)[:, :, None])[..., 0]
+    return dp, dx
 
 
 def bundle_adjust(camera: PinholeCamera, poses_c2w: Sequence[np.ndarray], fixed: Sequence[int], points: np.ndarray,
                   obs_kf: np.ndarray, obs_pt: np.ndarray, obs_uv: np.ndarray, huber_px: float = 1.5,
-                  max_nfev: int = 15) -> BAResult:
+                  max_nfev: int = 15, rel_tol: float = 1e-9) -> BAResult:
     """Refine the non-``fixed`` poses and all ``points`` from observations (keyframe index, point index, pixel).
 
     Levenberg-Marquardt with Huber weights (IRLS); each iteration eliminates the points
     (:func:`damped_step`) and solves the small dense pose system. ``max_nfev`` bounds the
-    number of residual evaluations.
+    number of residual evaluations; the solve also stops after an accepted step that lowers the
+    robust cost by less than ``rel_tol`` of it.
     """
     k = len(poses_c2w)
     obs_kf = np.asarray(obs_kf, np.int64)
@@ -203,7 +227,7 @@ def bundle_adjust(camera: PinholeCamera, poses_c2w: Sequence[np.ndarray], fixed:
                 rel = (cost - c_new) / max(cost, 1e-12)
                 cost = c_new
                 lam = max(lam / 3, 1e-9)
-                improved = rel > 1e-9
+                improved = rel > rel_tol
                 break
             lam *= 5
         if not improved:

@@ -30,17 +30,22 @@ FINAL_CODES = (2, 3)  # bad input, gave up waiting (services.process.EXIT_STALLE
 NICE = {"mapper": 5, "record": 5, "view": 10}
 
 
-def _lower_priority(increment: int):
-    """A ``preexec_fn`` that lowers the child's CPU priority by ``increment`` (None for 0)."""
-    if increment <= 0:
-        return None
+def _child_setup(increment: int):
+    """A ``preexec_fn``: the child gets a process group of its own (a Ctrl-C in the terminal reaches only the
+    launcher, which stops the services in order) and a CPU priority lowered by ``increment``.
 
-    def lower() -> None:
+    A process group, not a session: with the kernel's autogroup scheduling (``sched_autogroup_enabled``, on by
+    default) every session is scheduled as one group with an equal share of the CPU, and nice values only rank
+    processes within a session. Services in sessions of their own got equal shares whatever their nice value:
+    a busy mapper took a full core from the tracker."""
+    def setup() -> None:
         try:
-            os.nice(increment)
+            os.setpgid(0, 0)
+            if increment > 0:
+                os.nice(increment)
         except OSError:
             pass
-    return lower
+    return setup
 
 
 class Proc:
@@ -48,7 +53,7 @@ class Proc:
 
     def __init__(self, name: str, argv: list[str], out: Path, env: dict):
         self.name = name
-        self._preexec = _lower_priority(NICE.get(name, 0))
+        self._preexec = _child_setup(NICE.get(name, 0))
         self.status_file = out / "status" / f"{name}.json"
         self.log_path = out / "logs" / f"{name}.log"
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
@@ -60,7 +65,7 @@ class Proc:
         self.restarts = 0
         self._log = open(self.log_path, "w")
         self.popen = subprocess.Popen(self.argv, stdout=self._log, stderr=subprocess.STDOUT, env=env,
-                                      start_new_session=True, preexec_fn=self._preexec)
+                                      preexec_fn=self._preexec)
 
     def restart(self) -> None:
         """Start the same command again after it died: the log goes on, the status starts over."""
@@ -69,7 +74,7 @@ class Proc:
         if self.status_file.exists():
             self.status_file.unlink()
         self.popen = subprocess.Popen(self.argv, stdout=self._log, stderr=subprocess.STDOUT, env=self.env,
-                                      start_new_session=True, preexec_fn=self._preexec)
+                                      preexec_fn=self._preexec)
         self.restarts += 1
 
     @property

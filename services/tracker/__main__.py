@@ -89,6 +89,14 @@ def serve(svc: Service, cfg, opts: TrackerServiceOptions, args) -> int:
     if latest is not None:
         core.handle("field", latest, keys.latest)
         svc.log.info("synced to map version %d (frame %d) from %s", core.version, core.map_seq, keys.latest)
+    try:
+        return _loop(svc, core, args)
+    finally:
+        core.close()  # the saved keyframes written
+
+
+def _loop(svc: Service, core, args) -> int:
+    keys = svc.keys
     stop = False
     first = FirstMessage(args.first_message_timeout, f"frame on {keys.frames}")
     while not svc.shutdown.requested and not stop:
@@ -101,11 +109,8 @@ def serve(svc: Service, cfg, opts: TrackerServiceOptions, args) -> int:
         if channel == "frames":
             first.see()
         try:
-            if channel in ("end", "control"):
-                if msg.command == "stop":
-                    stop = True
-                core.apply(msg)
-                continue
+            if channel in ("end", "control") and msg.command == "stop":
+                stop = True  # what the stop releases (held poses, a last bundle adjustment's) still goes out
             for _, pose in core.apply(msg):
                 svc.publish(keys.poses("tracker"), pose)
         except Exception as e:  # a library failure: report it, keep serving

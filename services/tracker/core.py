@@ -64,7 +64,7 @@ from fmapping.geometry import orthonormalize
 from fmapping.session import REFINED, SKIPPED
 from services.core_support import ServiceCore
 from services.tracker.map_frontend import MapFrontend
-from services.tracker.resume_state import load_resume_state, save_resume_state
+from services.tracker.resume_state import StateWriter, load_resume_state
 
 
 
@@ -161,7 +161,8 @@ class TrackerCore(MapFrontend, ServiceCore):
         self._skipped_last = False  # the previous frame was skipped to keep pace
         # saved keyframes of the process before a restart (oldest first), None once used or given up
         self.resume_state: Optional[list] = load_resume_state(self.opts.state_path) if self.opts.state_path else None
-        self._saved_keyframe = -1  # newest keyframe of the state on disk
+        self._saved_keyframe = -1  # newest keyframe of the state handed to the writer
+        self._writer: Optional[StateWriter] = StateWriter(self.opts.state_path) if self.opts.state_path else None
         if self.resume_state is not None:
             self.counters.set("resume_keyframe", int(self.resume_state[-1]["index"]))
 
@@ -190,7 +191,9 @@ class TrackerCore(MapFrontend, ServiceCore):
                     return []
                 self._stopped = True  # frames held for their anchor pose go on without it
                 out = self._advance()
-                return out + self._publish(self.session.finish("the stream stopped before it"))
+                out += self._publish(self.session.finish("the stream stopped before it"))
+                self.flush_state()
+                return out
             return []
         raise ValueError(f"TrackerCore: unexpected message {type(msg).__name__}")
 
@@ -342,19 +345,37 @@ class TrackerCore(MapFrontend, ServiceCore):
         return st is not None
 
     def _save_state(self) -> None:
-        """The front end's newest keyframes to ``state_path`` (atomically), when they changed."""
+        """The front end's newest keyframes to ``state_path`` (atomically, by the writer thread), when they changed."""
         if not self.opts.state_path or self.mono is None or self.mono.keyframe_index == self._saved_keyframe:
             return
         state = self.mono.keyframe_states(self.opts.resume_keyframes)
         if not state:
             return
-        try:
-            save_resume_state(self.opts.state_path, state)
-        except OSError as e:
-            self.last_error = f"tracker state not saved: {e}"
-            return
+        self._writer.put(state)  # written off the frame path (StateWriter)
         self._saved_keyframe = self.mono.keyframe_index
-        self.counters.inc("states_saved")
+        self._writer_counts()
+
+    def _writer_counts(self) -> None:
+        """The state writer's count and last failure into the counters and ``last_error``."""
+        if self._writer is None:
+            return
+        self.counters.set("states_saved", self._writer.saved)
+        if self._writer.error:
+            self.last_error = self._writer.error
+
+    def flush_state(self, timeout: float = 30.0) -> bool:
+        """Wait until the keyframes handed to the state writer are on disk (True when they are)."""
+        if self._writer is None:
+            return True
+        done = self._writer.flush(timeout)
+        self._writer_counts()
+        return done
+
+    def close(self) -> None:
+        """Write what the state writer holds and stop it (the end of the process)."""
+        if self._writer is not None:
+            self._writer.close()
+            self._writer_counts()
 
     def _advance_mono(self) -> list[Output]:
         out: list[Output] = []

@@ -48,7 +48,10 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         self.camera = camera
         self.cfg = cfg or MonoConfig()
         self.cfg.validate()
-        self.tracker = DirectTracker(camera, tracker_cfg or TrackerConfig())
+        tcfg = tracker_cfg or TrackerConfig()
+        if self.cfg.pose_refine == "pnp" and self.cfg.direct_step_tol > tcfg.align.step_tol:
+            tcfg = dataclasses.replace(tcfg, align=dataclasses.replace(tcfg.align, step_tol=self.cfg.direct_step_tol))
+        self.tracker = DirectTracker(camera, tcfg)
         self.initialized = False
         self.failed = False
         self.init_info: dict = {}

@@ -190,7 +190,7 @@ class KeyframeStore:
         fixed += list(range(len(win), len(win) + len(extra)))
         return BAProblem(win, extra, [self.kf_pose[k].copy() for k in win + extra], fixed, lids,
                          np.stack([self.lm[i] for i in lids]), np.array([kf_pos[int(k)] for k in obs[:, 0]]),
-                         inv, obs, c.ba_huber_px, c.ba_max_nfev if max_nfev is None else max_nfev)
+                         inv, obs, c.ba_huber_px, c.ba_max_nfev if max_nfev is None else max_nfev, c.ba_rel_tol)
 
     def apply_ba(self, prob: "BAProblem", res: BAResult) -> set:
         """Take the solution ``res`` of ``prob``: keyframe poses and landmarks, outlying observations
@@ -239,6 +239,7 @@ class BAProblem:
     obs: np.ndarray
     huber_px: float
     max_nfev: int
+    rel_tol: float = 1e-9  # stop once a step lowers the cost by less than this fraction (MonoConfig.ba_rel_tol)
 
 
 def solve_ba_problem(camera: PinholeCamera, prob: BAProblem) -> BAResult:
@@ -246,6 +247,6 @@ def solve_ba_problem(camera: PinholeCamera, prob: BAProblem) -> BAResult:
     run in another thread. ``res.ms`` is its wall time."""
     t0 = time.perf_counter()
     res = bundle_adjust(camera, prob.poses, prob.fixed, prob.points, prob.obs_pose, prob.obs_point,
-                        prob.obs[:, 2:4], prob.huber_px, prob.max_nfev)
+                        prob.obs[:, 2:4], prob.huber_px, prob.max_nfev, prob.rel_tol)
     res.ms = (time.perf_counter() - t0) * 1000
     return res
