@@ -10,6 +10,7 @@ is solved; analytic Jacobians (tested against finite differences).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Sequence
 
 import numpy as np
@@ -106,6 +107,18 @@ class NormalEquations:
     pose_of: np.ndarray
     point_of: np.ndarray
 
+    @cached_property
+    def at(self) -> np.ndarray:
+        """Each ``hpx`` block's entries in the dense (6P, 3M) matrix, flat (for :func:`_scatter`)."""
+        rows = 6 * self.pose_of[:, None, None] + np.arange(6)[None, :, None]
+        cols = 3 * self.point_of[:, None, None] + np.arange(3)[None, None, :]
+        return (rows * (3 * len(self.hxx)) + cols).ravel()
+
+    @cached_property
+    def hpx_dense(self) -> np.ndarray:
+        """``hpx`` as the dense (6P, 3M) matrix (built once per normal equations, for every damping tried)."""
+        return _scatter(self.at, self.hpx, len(self.hpp), len(self.hxx))
+
 
 def _scatter(at: np.ndarray, blocks: np.ndarray, n_free: int, n_points: int) -> np.ndarray:
     """Per-observation (6, 3) blocks summed into a dense (6P, 3M) matrix at the flat positions ``at``."""
@@ -143,10 +156,7 @@ def _hpx_hinv_hxp(ne: NormalEquations, u: np.ndarray) -> np.ndarray:
     point into its pose pair (:func:`same_point_pairs`)."""
     nf, m = len(ne.hpp), len(ne.hxx)
     if nf * m <= DENSE_SCHUR_MAX:
-        rows = 6 * ne.pose_of[:, None, None] + np.arange(6)[None, :, None]
-        cols = 3 * ne.point_of[:, None, None] + np.arange(3)[None, None, :]
-        at = (rows * (3 * m) + cols).ravel()  # each block's entries in the (6P, 3M) matrix, flat
-        return _scatter(at, u, nf, m) @ _scatter(at, ne.hpx, nf, m).T
+        return _scatter(ne.at, u, nf, m) @ ne.hpx_dense.T
     a, b = same_point_pairs(ne.point_of)
     blocks = block_sum(ne.pose_of[a] * nf + ne.pose_of[b], u[a] @ _t(ne.hpx[b]), nf * nf)
     return blocks.reshape(nf, nf, 6, 6).transpose(0, 2, 1, 3).reshape(6 * nf, 6 * nf)
