@@ -123,18 +123,27 @@ def test_a_service_process_shares_the_launchers_session_in_a_group_of_its_own_at
     only the launcher), the launcher's session (with autogroup scheduling each session is scheduled as one
     group, so a session of its own would make its nice value meaningless against the other services), and
     its nice value lowered by the increment."""
-    probe = ("import json, os, pathlib; a = pathlib.Path('/proc/self/autogroup'); "
-             "print(json.dumps([os.getpid(), os.getpgrp(), os.getsid(0), os.nice(0), "
-             "a.read_text().split()[0] if a.exists() else None]))")
+    probe = ("import json, os\n"
+             "def autogroup():\n"
+             "    try:\n"
+             "        return open('/proc/self/autogroup').read().split()[0]\n"
+             "    except (OSError, IndexError):\n"
+             "        return None\n"
+             "print(json.dumps([os.getpid(), os.getpgrp(), os.getsid(0), os.nice(0), autogroup()]))\n")
     proc = supervise.Proc("view", [sys.executable, "-c", probe], tmp_path, dict(os.environ))
-    assert proc.popen.wait(timeout=60) == 0
-    pid, pgrp, sid, nice, group = json.loads(proc.log_path.read_text().strip().splitlines()[-1])
+    rc = proc.popen.wait(timeout=60)
+    log = proc.log_path.read_text()
+    assert rc == 0, log
+    pid, pgrp, sid, nice, group = json.loads(log.strip().splitlines()[-1])
     assert pgrp == pid != os.getpgrp()
     assert sid == os.getsid(0)
     assert nice == min(os.nice(0) + supervise.NICE["view"], 19)
-    mine = Path("/proc/self/autogroup")
-    if mine.exists():
-        assert group == mine.read_text().split()[0]
+    try:
+        mine = Path("/proc/self/autogroup").read_text().split()[0]
+    except (OSError, IndexError):  # no autogroup here (or not readable): nothing to compare
+        mine = None
+    if mine is not None and group is not None:
+        assert group == mine
 
 
 def test_kill_9_of_the_mapper_loses_at_most_one_window_against_an_undisturbed_run(fault_scene, tmp_path):
