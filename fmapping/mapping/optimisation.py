@@ -34,6 +34,7 @@ from fmapping.losses import (distortion_loss, expected_depth_l1, gaussian_blur, 
 from fmapping.mapping.batch_render import render_batch
 from fmapping.mapping.exposure import undo_exposure
 from fmapping.mapping.window_schedule import WindowStats
+from fmapping.runtime import release_free_memory
 
 
 class OptimisationStep:
@@ -230,6 +231,8 @@ class OptimisationStep:
         for _ in range(iters):
             check_stop(self._should_stop, f"{kind} update (after {len(logs)} of {iters} iterations)")
             logs.append(self._step(ids, imgs, mode, n_coarse, n_fine, sw_window, scene_imgs, sparse))
+        del imgs, sparse, scene_imgs
+        release_free_memory()  # the update's temporaries are gone: their pages go back (fmapping.runtime)
         st = WindowStats(
             index=len(self._stats), kind=kind, seconds=time.perf_counter() - t0, iterations=iters,
             loss=float(np.mean([x["loss"] for x in logs[-5:]])) if logs else float("nan"),
