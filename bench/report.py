@@ -378,7 +378,21 @@ def long_run_section() -> str:
         f"memory per group of windows. RSS {fmt(d.get('rss_mb_at_frame_200'), 0)} MB at frame 200, "
         f"{fmt(d.get('rss_mb_end'), 0)} MB at the end ({fmt(d.get('rss_growth_from_frame_200_pct'), 1)} %), high-water "
         f"mark {fmt(d.get('rss_mb_high_water'), 0)} MB (export included).\n",
-        table(["windows", "frames", "window s min", "window s median", "RSS max MB", "mapper images MB"], rows)]) + "\n"
+        table(["windows", "frames", "window s min", "window s median", "RSS max MB", "mapper images MB"], rows),
+        _trim_note()]) + "\n"
+
+
+def _trim_note() -> str:
+    """The side-by-side runs of ``long_run_trim/`` (the heap trimmed after each mapper update, or not)."""
+    runs = {k: load(f"long_run_trim/{k}") for k in ("without_trim", "with_trim")}
+    if any(v is None for v in runs.values()):
+        return ""
+    part = {k: f"RSS max {fmt(min(g['rss_mb_max'] for g in d['groups']), 0)}-"
+               f"{fmt(max(g['rss_mb_max'] for g in d['groups']), 0)} MB per group, "
+               f"{fmt(d.get('rss_growth_from_frame_200_pct'), 1)} % from frame 200"
+            for k, d in runs.items()}
+    return ("\nThe table above predates the heap trim after each mapper update. Side by side "
+            f"(`long_run_trim/`): without it {part['without_trim']}; with it {part['with_trim']}.")
 
 
 def faults_section() -> str:
