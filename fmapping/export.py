@@ -126,12 +126,15 @@ def _node_raw(field, box: np.ndarray, r: int, chunk: int = 262144) -> np.ndarray
         lines = field.density_lines[..., 0].detach().cpu().float()  # (3, C, R)
         return torch.einsum("ci,cj,ck->ijk", lines[0], lines[1], lines[2]).numpy()
     axes = [np.linspace(box[0, a], box[1, a], r) for a in range(3)]
-    gx, gy, gz = np.meshgrid(*axes, indexing="ij")
-    pts = np.stack([gx.reshape(-1), gy.reshape(-1), gz.reshape(-1)], -1)
-    raw = np.empty(r ** 3, np.float32)
-    for s in range(0, len(pts), chunk):
-        x = torch.as_tensor(pts[s:s + chunk], dtype=field.dtype, device=field.device)
-        raw[s:s + chunk] = field.density_raw(x).cpu().numpy()
+    gy, gz = np.meshgrid(axes[1], axes[2], indexing="ij")
+    yz = np.stack([gy.reshape(-1), gz.reshape(-1)], -1)  # one x-slab's (y, z), [y, z] order
+    raw = np.empty((r, r * r), np.float32)
+    step = max(1, chunk // (r * r))  # x-slabs per evaluation: the nodes are made slab by slab, never all at once
+    for i in range(0, r, step):
+        xs = axes[0][i:i + step]
+        pts = np.concatenate([np.repeat(xs, len(yz))[:, None], np.tile(yz, (len(xs), 1))], 1)
+        x = torch.as_tensor(pts, dtype=field.dtype, device=field.device)
+        raw[i:i + step] = field.density_raw(x).cpu().numpy().reshape(len(xs), r * r)
     return raw.reshape(r, r, r)
 
 
@@ -288,19 +291,68 @@ def _fast_render_fn(source, near: float, far: float, n_samples: int, n_importanc
     return fn, field
 
 
-def _voxel_groups(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Voxel of each point (``inv``, voxels sorted by integer (x, y, z) index), points per voxel
-    and the first point of each voxel."""
-    keys = np.floor(points / voxel).astype(np.int64)
+def _group_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Integer voxel keys (N, 3) -> (unique keys sorted by (x, y, z), index of each one's first row, inverse)."""
     lo = keys.min(0)
     span = keys.max(0) - lo + 1
     if float(span[0]) * float(span[1]) * float(span[2]) < 2.0 ** 62:  # one int64 per voxel: a fast 1-D unique
         k = keys - lo
         flat = (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]
-        _, first, inv, counts = np.unique(flat, return_index=True, return_inverse=True, return_counts=True)
+        _, first, inv = np.unique(flat, return_index=True, return_inverse=True)
     else:
-        _, first, inv, counts = np.unique(keys, axis=0, return_index=True, return_inverse=True, return_counts=True)
-    return inv.reshape(-1), counts, first
+        _, first, inv = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    return keys[first], first, inv.reshape(-1)
+
+
+class VoxelAccumulator:
+    """:func:`voxel_downsample` fed in parts, holding one entry per voxel seen so far instead of every point:
+    per voxel the sums of its points (and of ``values``, e.g. colours), its count, and a ``tags`` row of its
+    first point in the order added. :meth:`result` gives what the whole concatenation would have given
+    (voxels sorted by integer (x, y, z) index; the sums are added in another order: equal to float rounding).
+
+    The export adds each view's points; the parts are reduced once ``reduce_at`` points are pending, so its
+    memory follows the map's voxels, not the views' pixels (a 1,000-frame run's export: ~4 M pixels)."""
+
+    def __init__(self, voxel: float, reduce_at: int = 1_000_000) -> None:
+        if not voxel > 0:
+            raise ValueError(f"VoxelAccumulator: voxel must be > 0, got {voxel}")
+        self.voxel = float(voxel)
+        self.reduce_at = int(reduce_at)
+        self._parts: list[tuple] = []  # (keys (N, 3) int64, sums (N, 3 + V), counts (N,), tags (N, T))
+        self._pending = 0
+
+    def add(self, points: np.ndarray, values: Optional[np.ndarray] = None, tags: Optional[np.ndarray] = None) -> None:
+        points = np.asarray(points, np.float64).reshape(-1, 3)
+        n = len(points)
+        if n == 0:
+            return
+        vals = np.zeros((n, 0)) if values is None else np.asarray(values, np.float64).reshape(n, -1)
+        tg = np.zeros((n, 0), np.int64) if tags is None else np.asarray(tags, np.int64).reshape(n, -1)
+        keys = np.floor(points / self.voxel).astype(np.int64)
+        self._parts.append((keys, np.concatenate([points, vals], 1), np.ones(n, np.int64), tg))
+        self._pending += n
+        if self._pending >= self.reduce_at:
+            self._reduce()
+
+    def _reduce(self) -> None:
+        self._pending = 0
+        if not self._parts:
+            return
+        keys, sums, counts, tags = (np.concatenate(x) for x in zip(*self._parts))
+        uniq, first, inv = _group_keys(keys)
+        m = len(uniq)
+        red = np.stack([np.bincount(inv, weights=sums[:, a], minlength=m) for a in range(sums.shape[1])], -1)
+        self._parts = [(uniq, red.reshape(m, sums.shape[1]),
+                        np.bincount(inv, weights=counts, minlength=m).astype(np.int64), tags[first])]
+
+    def result(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(mean points (M, 3), mean values (M, V), counts (M,), tags of each voxel's first point (M, T))."""
+        self._reduce()
+        if not self._parts:
+            return np.zeros((0, 3)), np.zeros((0, 0)), np.zeros(0, np.int64), np.zeros((0, 0), np.int64)
+        _, sums, counts, tags = self._parts[0]
+        mean = sums / counts[:, None]
+        return mean[:, :3], mean[:, 3:], counts, tags
 
 
 def voxel_downsample(points: np.ndarray, colors: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -309,11 +361,10 @@ def voxel_downsample(points: np.ndarray, colors: np.ndarray, voxel: float) -> tu
     Output voxels are sorted by their integer (x, y, z) index, lexicographically."""
     if voxel <= 0 or len(points) == 0:
         return points, colors
-    inv, counts, _ = _voxel_groups(points, voxel)
-    n = len(counts)
-    out_p = np.stack([np.bincount(inv, weights=points[:, a], minlength=n) for a in range(3)], -1)
-    out_c = np.stack([np.bincount(inv, weights=colors[:, a].astype(np.float64), minlength=n) for a in range(3)], -1)
-    return out_p / counts[:, None], out_c / counts[:, None]
+    acc = VoxelAccumulator(voxel, reduce_at=len(points) + 1)
+    acc.add(points, values=colors)
+    p, c, _, _ = acc.result()
+    return p, c
 
 
 def _lookup_nearest(img: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -399,7 +450,9 @@ def export_point_cloud(
     centres = np.stack([p[:3, 3] for p in plist])
     uv = cam_lo.pixel_grid(dtype=torch.float64).numpy()
     dirs = np.stack([(uv[:, 0] - cam_lo.cx) / cam_lo.fx, (uv[:, 1] - cam_lo.cy) / cam_lo.fy, np.ones(len(uv))], -1)
-    all_p, all_c, all_v, all_x = [], [], [], []
+    # each view's points go into the voxel grid at once: memory follows the voxels, not every view's pixels
+    grid = VoxelAccumulator(voxel) if voxel > 0 else None
+    all_p, all_c, all_v = [], [], []
     for i, (pose, rd) in enumerate(zip(plist, renders)):
         acc = rd["acc"].reshape(-1)
         dep = rd["depth"].reshape(-1)
@@ -438,23 +491,24 @@ def export_point_cloud(
                 good += cons
             ok = good >= min_consistent
             pts, col, pix = pts[ok], col[ok], pix[ok]
-        all_p.append(pts)
-        all_c.append(col)
-        all_v.append(np.full(len(pix), i))
-        all_x.append(pix)
-    if not all_p:
+        tags = np.stack([np.full(len(pix), i), pix], -1)  # (view, pixel) of each point
+        if grid is not None:
+            grid.add(pts, values=None if defer else col, tags=tags)
+        else:
+            all_p.append(pts)
+            all_c.append(col)
+            all_v.append(tags)
+    if grid is not None:
+        p, c, _, tags = grid.result()
+    elif all_p:
+        p, c, tags = np.concatenate(all_p), np.concatenate(all_c), np.concatenate(all_v)
+    else:
+        p = np.zeros((0, 3))
+    if not len(p):
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
     if not defer:
-        p, c = voxel_downsample(np.concatenate(all_p), np.concatenate(all_c), voxel)
         return p, np.clip(np.round(c), 0, 255).astype(np.uint8)
-    pts, views, pix = np.concatenate(all_p), np.concatenate(all_v), np.concatenate(all_x)
-    if voxel > 0 and len(pts):
-        inv, counts, first = _voxel_groups(pts, voxel)
-        p = (np.stack([np.bincount(inv, weights=pts[:, a], minlength=len(counts)) for a in range(3)], -1)
-             / counts[:, None])
-    else:
-        p, first = pts, np.arange(len(pts))
-    c = _deferred_colors(field, plist, dirs, renders, views[first], pix[first])
+    c = _deferred_colors(field, plist, dirs, renders, tags[:, 0], tags[:, 1])
     return p, np.clip(np.round(c * 255.0), 0, 255).astype(np.uint8)
 
 
