@@ -1,6 +1,7 @@
 """Memory of the end of a run: resident size and high-water mark around each export stage of ``fmapping slam``.
 
-    python bench/export_memory.py --data /tmp/fmapping_bench_long/synth_s0_f1000_320x240 --frames 300
+    python bench/export_memory.py                       # the first 300 frames of bench/long_run.py's room
+    python bench/export_memory.py --data DATASET --frames 300
 
 Runs ``fmapping slam`` (RGB only, export on) in this process with the export stages wrapped: for each of
 ``write_map_outputs``, ``export_point_cloud``, ``export_mesh`` and the map scores it prints ``VmRSS`` before
@@ -34,10 +35,11 @@ def rss_mb() -> float:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", required=True, help="a dataset folder")
+    ap.add_argument("--data", default=None, help="a dataset folder (default: bench/long_run.py's generated "
+                    "1,000-frame room, generated here when missing)")
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "export_memory.json"))
+    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "export_memory" / "export_memory.json"))
     a = ap.parse_args(argv)
 
     import torch
@@ -47,6 +49,14 @@ def main(argv=None) -> int:
     from fmapping.job import Job
 
     torch.set_num_threads(a.threads)
+    if a.data is None:
+        from fmapping.synthetic import generate_scene
+
+        data = Path(tempfile.gettempdir()) / "fmapping_bench_long" / "synth_s0_f1000_320x240"  # as long_run.py's
+        if not (data / "scene.json").is_file():
+            print(f"[mem] generating {data} ...", flush=True)
+            generate_scene(data, seed=0, frames=1000, size=(320, 240), max_cloud_points=20000)
+        a.data = str(data)
     stages: list[dict] = []
 
     def wrap(mod, name: str) -> None:
