@@ -391,7 +391,7 @@ def _trim_note() -> str:
                f"{fmt(max(g['rss_mb_max'] for g in d['groups']), 0)} MB per group, "
                f"{fmt(d.get('rss_growth_from_frame_200_pct'), 1)} % from frame 200"
             for k, d in runs.items()}
-    return ("\nThe table above predates the heap trim after each mapper update. Side by side "
+    return ("\nThe heap trim after each mapper update (in the run above), side by side with the code before it "
             f"(`long_run_trim/`): without it {part['without_trim']}; with it {part['with_trim']}.")
 
 
