@@ -22,6 +22,7 @@ no-ops (returning False) where the library in question is absent.
 from __future__ import annotations
 
 import ctypes
+import functools
 
 M_TRIM_THRESHOLD = -1  # glibc <malloc.h>
 M_MMAP_THRESHOLD = -3
@@ -30,8 +31,10 @@ MMAP_THRESHOLD_MAX = 32 * 1024 * 1024  # glibc's largest M_MMAP_THRESHOLD on 64-
 RETAINED_TRIM = 512 * 1024 * 1024
 
 
+@functools.lru_cache(maxsize=1)
 def _libc():
-    """The C library already loaded in this process (no library search), if it has ``mallopt``."""
+    """The C library already loaded in this process (no library search), if it has ``mallopt``; looked up
+    once (the mapper asks after every update)."""
     try:
         lib = ctypes.CDLL(None)
     except OSError:
