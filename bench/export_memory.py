@@ -20,17 +20,12 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+from long_run import long_room, rss_mb  # noqa: E402  (bench/long_run.py: its room and its RSS reading)
 
 
 def high_water_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def rss_mb() -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024.0
-    return float("nan")
 
 
 def main(argv=None) -> int:
@@ -50,13 +45,7 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(a.threads)
     if a.data is None:
-        from fmapping.synthetic import generate_scene
-
-        data = Path(tempfile.gettempdir()) / "fmapping_bench_long" / "synth_s0_f1000_320x240"  # as long_run.py's
-        if not (data / "scene.json").is_file():
-            print(f"[mem] generating {data} ...", flush=True)
-            generate_scene(data, seed=0, frames=1000, size=(320, 240), max_cloud_points=20000)
-        a.data = str(data)
+        a.data = str(long_room(Path(tempfile.gettempdir()) / "fmapping_bench_long"))  # long_run.py's default work
     stages: list[dict] = []
 
     def wrap(mod, name: str) -> None:

@@ -38,6 +38,19 @@ def rss_mb() -> float:
     return float("nan")
 
 
+def long_room(work: Path, seed: int = 0, frames: int = 1000, size: tuple = (320, 240)) -> Path:
+    """The generated room of the long run in ``work`` (made when missing; ``bench/export_memory.py`` uses it too)."""
+    from fmapping.synthetic import generate_scene
+
+    data = work / f"synth_s{seed}_f{frames}_{size[0]}x{size[1]}"
+    if not (data / "scene.json").is_file():
+        t = time.perf_counter()
+        print(f"[long] generating {data} ...", flush=True)
+        generate_scene(data, seed=seed, frames=frames, size=size, max_cloud_points=20000)
+        print(f"[long] generated in {time.perf_counter() - t:.0f} s", flush=True)
+    return data
+
+
 def holdings(run) -> dict:
     """What the long-lived containers of a :class:`fmapping.slam.SlamRun` hold now."""
     out: dict = {}
@@ -84,15 +97,7 @@ def main(argv=None) -> int:
     if a.data:
         data = Path(a.data)
     else:
-        from fmapping.synthetic import generate_scene
-
-        size = tuple(int(v) for v in a.size.lower().split("x"))
-        data = work / f"synth_s{a.seed}_f{a.synth_frames}_{size[0]}x{size[1]}"
-        if not (data / "scene.json").is_file():
-            t = time.perf_counter()
-            print(f"[long] generating {data} ...", flush=True)
-            generate_scene(data, seed=a.seed, frames=a.synth_frames, size=size, max_cloud_points=20000)
-            print(f"[long] generated in {time.perf_counter() - t:.0f} s", flush=True)
+        data = long_room(work, a.seed, a.synth_frames, tuple(int(v) for v in a.size.lower().split("x")))
     rows: list[dict] = []
     t0 = time.perf_counter()
     orig = slam_run.SlamRun._on_window
