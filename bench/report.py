@@ -382,17 +382,27 @@ def long_run_section() -> str:
         _trim_note()]) + "\n"
 
 
+def _ab_part(d: dict) -> str:
+    return (f"RSS max {fmt(min(g['rss_mb_max'] for g in d['groups']), 0)}-"
+            f"{fmt(max(g['rss_mb_max'] for g in d['groups']), 0)} MB per group, "
+            f"{fmt(d.get('rss_growth_from_frame_200_pct'), 1)} % from frame 200")
+
+
 def _trim_note() -> str:
-    """The side-by-side runs of ``long_run_trim/`` (the heap trimmed after each mapper update, or not)."""
-    runs = {k: load(f"long_run_trim/{k}") for k in ("without_trim", "with_trim")}
-    if any(v is None for v in runs.values()):
-        return ""
-    part = {k: f"RSS max {fmt(min(g['rss_mb_max'] for g in d['groups']), 0)}-"
-               f"{fmt(max(g['rss_mb_max'] for g in d['groups']), 0)} MB per group, "
-               f"{fmt(d.get('rss_growth_from_frame_200_pct'), 1)} % from frame 200"
-            for k, d in runs.items()}
-    return ("\nThe heap trim after each mapper update (in the run above), side by side with the code before it "
-            f"(`long_run_trim/`): without it {part['without_trim']}; with it {part['with_trim']}.")
+    """The side-by-side runs of ``long_run_trim/`` (the heap trimmed after each mapper update, or not) and of
+    ``long_run_sparse_obs/`` (the sparse points' per-frame observations as arrays, or as lists)."""
+    notes = []
+    trim = {k: load(f"long_run_trim/{k}") for k in ("without_trim", "with_trim")}
+    if all(v is not None for v in trim.values()):
+        notes.append("\nThe heap trim after each mapper update (in the run above), side by side with the code before "
+                     f"it (`long_run_trim/`): without it {_ab_part(trim['without_trim'])}; with it "
+                     f"{_ab_part(trim['with_trim'])}.")
+    obs = {k: load(f"long_run_sparse_obs/{k}") for k in ("before", "after")}
+    if all(v is not None for v in obs.values()):
+        notes.append("\nThe sparse points' per-frame observations kept as arrays (in the run above), side by side "
+                     f"with the lists before (`long_run_sparse_obs/`): before {_ab_part(obs['before'])}; after "
+                     f"{_ab_part(obs['after'])}.")
+    return "".join(notes)
 
 
 def faults_section() -> str:

@@ -94,8 +94,10 @@ class TrackTriangulator:
         self._poses: dict[int, np.ndarray] = {}
         self.points = np.zeros((0, 3))  # (N, 3) world points
         self.weights = np.zeros(0)  # (N,) in (0, 1]
-        self._frame_obs: dict[int, tuple[list, list]] = {}  # frame id -> ([point index], [uv])
+        # frame id -> (point indices (M,) int64, pixels (M, 2) float64): compact, it grows with the sequence
+        self._frame_obs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.frame_ids: list[int] = []
+        self._cuts: dict[tuple[int, float, int], float] = {}  # (frame id, quantile, min points) -> depth_quantile
 
     # -------------------------------------------------------------- input
     def add(self, fid: int, rgb: np.ndarray, c2w: np.ndarray) -> None:
@@ -127,7 +129,8 @@ class TrackTriangulator:
         """Newer poses of frames already added (used by the tracks still live and by ``frame_depths``)."""
         for fid, c2w in poses.items():
             if fid in self._poses:
-                self._poses[fid] = np.asarray(c2w, np.float64)
+                self._poses[fid] = np.array(c2w, np.float64)
+                self._forget_cuts(fid)
 
     def flush(self) -> None:
         """Triangulate every live track now (the tracks restart at the next frame)."""
@@ -138,14 +141,28 @@ class TrackTriangulator:
     def frame_depths(self, fid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Sparse depth of frame ``fid``: pixels (M, 2), camera depths (M,) of its triangulated points
         under the frame's current pose, weights (M,). Empty arrays when it has none."""
-        idx, uv = self._frame_obs.get(fid, ([], []))
-        if not idx:
+        obs = self._frame_obs.get(fid)
+        if obs is None:
             return np.zeros((0, 2)), np.zeros(0), np.zeros(0)
-        idx = np.asarray(idx)
+        idx, uv = obs
         c2w = self._poses[fid]
         z = (self.points[idx] - c2w[:3, 3]) @ c2w[:3, 2]
         ok = z > 1e-6
-        return np.asarray(uv)[ok], z[ok], self.weights[idx][ok]
+        return uv[ok], z[ok], self.weights[idx][ok]
+
+    def depth_quantile(self, fid: int, quantile: float = 50.0, min_points: int = 10) -> float:
+        """The ``quantile`` of frame ``fid``'s sparse depths (:meth:`frame_depths`); NaN with fewer than
+        ``min_points``. Kept until the frame's points or pose change: the scene box asks for every frame's
+        at every window, so its cost must not grow with the sequence."""
+        key = (int(fid), float(quantile), int(min_points))
+        if key not in self._cuts:
+            z = self.frame_depths(fid)[1]
+            self._cuts[key] = float(np.percentile(z, quantile)) if len(z) >= min_points else float("nan")
+        return self._cuts[key]
+
+    def _forget_cuts(self, fid: int) -> None:
+        for key in [k for k in self._cuts if k[0] == fid]:
+            del self._cuts[key]
 
     def frame_fill(self, fid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Depth filled in between frame ``fid``'s points (:func:`fill_depths`): pixels, depths, weights."""
@@ -156,8 +173,9 @@ class TrackTriangulator:
 
     def points_seen_by(self, fids) -> np.ndarray:
         """(N, 3) points observed in any of the frames ``fids``."""
-        idx = sorted({i for f in fids for i in self._frame_obs.get(f, ([], []))[0]})
-        return self.points[idx] if idx else np.zeros((0, 3))
+        parts = [self._frame_obs[f][0] for f in fids if f in self._frame_obs]
+        idx = np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+        return self.points[idx] if len(idx) else np.zeros((0, 3))
 
     # -------------------------------------------------------------- state
     def state_dict(self) -> dict:
@@ -173,7 +191,7 @@ class TrackTriangulator:
             "poses": {int(k): torch.from_numpy(v.copy()) for k, v in self._poses.items()},
             "points": torch.from_numpy(self.points.copy()),
             "weights": torch.from_numpy(self.weights.copy()),
-            "frame_obs": {int(k): (list(map(int, i)), torch.as_tensor(np.asarray(uv, np.float64).reshape(-1, 2)))
+            "frame_obs": {int(k): (torch.from_numpy(i.copy()), torch.from_numpy(uv.copy()))
                           for k, (i, uv) in self._frame_obs.items()},
             "frame_ids": list(self.frame_ids),
         }
@@ -186,8 +204,11 @@ class TrackTriangulator:
         self._poses = {int(k): v.numpy().copy() for k, v in d["poses"].items()}
         self.points = d["points"].numpy().copy()
         self.weights = d["weights"].numpy().copy()
-        self._frame_obs = {int(k): (list(i), [p for p in uv.numpy().copy()]) for k, (i, uv) in d["frame_obs"].items()}
+        self._frame_obs = {int(k): (np.asarray(i, np.int64).reshape(-1).copy(),
+                                    np.asarray(uv, np.float64).reshape(-1, 2).copy())
+                           for k, (i, uv) in d["frame_obs"].items()}
         self.frame_ids = list(d["frame_ids"])
+        self._cuts = {}
 
     # -------------------------------------------------------------- triangulation
     def _triangulate(self, tracks: list) -> None:
@@ -239,11 +260,18 @@ class TrackTriangulator:
         self.weights = np.concatenate([self.weights, point_weights(err[keep], valid[keep], par[keep], cam.fx,
                                                                    at_width(self.cfg.min_rms_px, cam.width),
                                                                    self.cfg.sigma_ref)])
-        for j, ti in enumerate(keep):
-            for fid, uv in tracks[ti]:
-                idx, pix = self._frame_obs.setdefault(fid, ([], []))
-                idx.append(base + j)
-                pix.append(uv)
+        # the kept tracks' observations, appended to each frame's arrays in the tracks' order
+        rows = valid[keep]
+        obs_fid, obs_idx, obs_uv = fids[keep][rows], np.broadcast_to(base + np.arange(len(keep))[:, None],
+                                                                     rows.shape)[rows], uvs[keep][rows]
+        order = np.argsort(obs_fid, kind="stable")
+        obs_fid, obs_idx, obs_uv = obs_fid[order], obs_idx[order], obs_uv[order]
+        starts = np.flatnonzero(np.r_[True, obs_fid[1:] != obs_fid[:-1]])
+        for a, b in zip(starts, np.r_[starts[1:], len(obs_fid)]):
+            fid = int(obs_fid[a])
+            idx, pix = self._frame_obs.get(fid, (np.zeros(0, np.int64), np.zeros((0, 2))))
+            self._frame_obs[fid] = (np.concatenate([idx, obs_idx[a:b]]), np.concatenate([pix, obs_uv[a:b]]))
+            self._forget_cuts(fid)
 
 
 def point_weights(err: np.ndarray, valid: np.ndarray, parallax_deg: np.ndarray, focal: float, min_rms: float,
@@ -325,19 +353,23 @@ def seen_depth_box(c2w: np.ndarray, depths: list, camera: PinholeCamera, quantil
     ``min_points`` depths take the median cut of the others. Where texture is too weak for points
     (a plain upper wall, a ceiling), the camera still saw the scene out to about that depth: the box
     must hold it. None when no frame has enough depths."""
-    cuts = [float(np.percentile(d, quantile)) * stretch if len(d) >= min_points else None for d in depths]
-    known = [c for c in cuts if c is not None]
-    if not known:
+    cuts = np.array([np.percentile(d, quantile) if len(d) >= min_points else np.nan for d in depths], np.float64)
+    return frusta_box(c2w, cuts * stretch, camera)
+
+
+def frusta_box(c2w: np.ndarray, cuts: np.ndarray, camera: PinholeCamera) -> Optional[np.ndarray]:
+    """Box (2, 3) of the view frusta of cameras ``c2w`` (N, 4, 4) cut at depths ``cuts`` (N,); a NaN cut
+    takes the median of the others (:func:`seen_depth_box`). None when every cut is NaN."""
+    cuts = np.asarray(cuts, np.float64).reshape(-1)
+    known = np.isfinite(cuts)
+    if not known.any():
         return None
-    fill = float(np.median(known))
+    cuts = np.where(known, cuts, np.median(cuts[known]))
     w, h = camera.width, camera.height
     corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]], np.float64)
     rays = np.stack([(corners[:, 0] - camera.cx) / camera.fx, (corners[:, 1] - camera.cy) / camera.fy, np.ones(4)], -1)
-    pts = []
-    for pose, cut in zip(np.asarray(c2w, np.float64).reshape(-1, 4, 4), cuts):
-        far = rays * (fill if cut is None else cut)
-        pts.append(far @ pose[:3, :3].T + pose[:3, 3])
-        pts.append(pose[None, :3, 3])
-    allp = np.concatenate(pts)
+    c2w = np.asarray(c2w, np.float64).reshape(-1, 4, 4)
+    far = rays[None] * cuts[:, None, None]  # (N, 4, 3) camera frame
+    pts = np.einsum("nij,nkj->nki", c2w[:, :3, :3], far) + c2w[:, None, :3, 3]
+    allp = np.concatenate([pts.reshape(-1, 3), c2w[:, :3, 3]])
     return np.stack([allp.min(0), allp.max(0)])
-

@@ -125,12 +125,27 @@ def test_frame_depths_follow_the_frame_pose(room_frames):
     ok = gt_depth > 0
     rel = np.abs(z[ok] - gt_depth[ok]) / gt_depth[ok]
     assert np.median(rel) < 0.02, np.median(rel)
-    # a new pose for frame 5 moves its sparse depths with it (1 m back along the optical axis)
+    # every frame's pixels pair with their own points: lifted at their depth, each lands on a triangulated point
+    # within the reprojection tolerance (a pixel paired with another track's point would be centimetres off)
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(tri.points)
+    for f in range(12):
+        uv_f, z_f, _ = tri.frame_depths(f)
+        cam_pts = np.stack([(uv_f[:, 0] - cam.cx) / cam.fx * z_f, (uv_f[:, 1] - cam.cy) / cam.fy * z_f, z_f], -1)
+        lifted = cam_pts @ c2w[f][:3, :3].T + c2w[f][:3, 3]
+        tol = tri._reproj / cam.fx * z_f
+        assert (tree.query(lifted)[0] <= tol * 1.001 + 1e-9).all(), f
+    assert tri.depth_quantile(5) == pytest.approx(np.median(z), abs=1e-12)
+    # a new pose for frame 5 moves its sparse depths with it (1 m back along the optical axis), and the
+    # remembered median depth with them
     moved = c2w[5].copy()
     moved[:3, 3] -= moved[:3, 2]
     tri.set_poses({5: moved})
     _, z2, _ = tri.frame_depths(5)
     np.testing.assert_allclose(z2, z + 1.0, atol=1e-9)
+    assert tri.depth_quantile(5) == pytest.approx(np.median(z) + 1.0, abs=1e-9)
+    assert np.isnan(tri.depth_quantile(5, min_points=len(z) + 1))
 
 
 def test_state_round_trip_continues_identically(room_frames):

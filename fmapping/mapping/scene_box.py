@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from fmapping.camera import PinholeCamera
-from fmapping.sparse_points import TrackTriangulator, aabb_from_points, seen_depth_box
+from fmapping.sparse_points import TrackTriangulator, aabb_from_points, frusta_box
 
 
 def aabb_from_poses(c2w: np.ndarray, camera: PinholeCamera, near: float, far: float, margin: float = 0.1) -> np.ndarray:
@@ -48,14 +48,14 @@ def aabb_from_depth(c2w: np.ndarray, depths: list, camera: PinholeCamera, margin
 def points_box(sparse: TrackTriangulator, frame_poses: dict, camera: PinholeCamera,
                margin: float) -> Optional[np.ndarray]:
     """The box of the triangulated points and camera centres, widened to hold what each camera saw out
-    to the depth of its own points (:func:`fmapping.sparse_points.seen_depth_box`), plus the margin.
+    to the median depth of its own points (:func:`fmapping.sparse_points.frusta_box`), plus the margin.
     ``frame_poses``: {frame id: float64 (4, 4) c2w tensor}; frames without a pose are left out."""
     ids = [i for i in sparse.frame_ids if i in frame_poses]
     if not ids:
         return None
     poses = np.stack([frame_poses[i].numpy() for i in ids])
     b = aabb_from_points(sparse.points, poses[:, :3, 3], margin=margin)
-    seen = seen_depth_box(poses, [sparse.frame_depths(i)[1] for i in ids], camera)
+    seen = frusta_box(poses, np.array([sparse.depth_quantile(i) for i in ids]), camera)
     if b is None or seen is None:
         return b
     pad = np.maximum(margin, 0.05 * (seen[1] - seen[0]))
