@@ -21,7 +21,7 @@ from fmapping.camera import PinholeCamera
 from fmapping.cancel import StopFn
 from fmapping.device import pick_device
 from fmapping.field import build_field
-from fmapping.geometry import se3_inverse
+from fmapping.geometry import nearest_rotation, se3_exp, se3_inverse
 from fmapping.mapping.batch_render import render_batch
 from fmapping.mapping.config import MapperConfig
 from fmapping.mapping.exposure import fit_colour_gain, undo_exposure
@@ -81,6 +81,8 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
         need_points = (cfg.bounds == "points" and self._aabb_given is None) or cfg.sparse_depth_weight > 0
         self._sparse: Optional[TrackTriangulator] = TrackTriangulator(camera, cfg.sparse) if need_points else None
         self._exposure: dict[int, torch.nn.Parameter] = {}  # frame id -> (a_r, a_g, a_b, b_r, b_g, b_b)
+        # frame id -> se(3) correction (camera side) of its pose in the current update (cfg.refine_poses)
+        self._pose_delta: dict[int, torch.nn.Parameter] = {}
         self._box_refits = 0
 
     # ================================================================= public API
@@ -115,6 +117,8 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
             self._sparse.add(fid, img.numpy(), pose.numpy())
         if self.cfg.exposure:
             self._new_exposure(fid)
+        if self.cfg.refine_poses:
+            self._new_pose_delta(fid)
         if not self.initialized:
             self._init_ids.append(fid)
             if len(self._init_ids) >= self.cfg.init_frames:
@@ -297,6 +301,28 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
             return self._poses[0].clone()
         a, b = self._poses[n - 2], self._poses[n - 1]
         return b @ se3_inverse(a) @ b
+
+    # ================================================================ pose refinement
+    def _new_pose_delta(self, fid: int) -> None:
+        p = torch.nn.Parameter(torch.zeros(6, dtype=torch.float32, device=self.device), requires_grad=fid > 0)
+        self._pose_delta[fid] = p
+        if self._opt is not None and p.requires_grad:
+            for g in self._opt.param_groups:
+                if g.get("name") == "pose_refine":
+                    g["params"].append(p)
+
+    @torch.no_grad()
+    def _fold_pose_deltas(self, ids: list[int]) -> None:
+        """Move the update's pose corrections of frames ``ids`` into their poses and zero them (Adam's
+        moments stay: the next update goes on from where this one left)."""
+        for i in ids:
+            d = self._pose_delta.get(i)
+            if d is None or not d.requires_grad or not bool(d.any()):
+                continue
+            p = self._poses[i] @ se3_exp(d.detach().double().cpu())
+            p[:3, :3] = nearest_rotation(p[:3, :3])
+            self._poses[i] = p
+            d.zero_()
 
     # ================================================================ exposure
     def _new_exposure(self, fid: int) -> None:

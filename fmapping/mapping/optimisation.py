@@ -52,7 +52,10 @@ class OptimisationStep:
         if cfg.exposure:  # frame 0 fixes the colour gauge; frames after the build join the group as they come
             groups.append({"params": [p for i, p in sorted(self._exposure.items()) if p.requires_grad],
                            "lr": cfg.lr_exposure, "name": "exposure"})
-        groups = [g for g in groups if g["params"] or g["name"] == "exposure"]
+        if cfg.refine_poses:  # frame 0 fixes the gauge; frames join as they come, like the exposures
+            groups.append({"params": [p for i, p in sorted(self._pose_delta.items()) if p.requires_grad],
+                           "lr": cfg.lr_pose_refine, "name": "pose_refine"})
+        groups = [g for g in groups if g["params"] or g["name"] in ("exposure", "pose_refine")]
         self._opt = torch.optim.Adam(groups, betas=(0.9, 0.99))
 
     def _set_lr(self, name: str, lr: float) -> None:
@@ -70,8 +73,11 @@ class OptimisationStep:
             self._pose_corr.requires_grad_(False)
 
     def _frame_c2w(self, ids: list[int]) -> Tensor:
-        """float32 (V, 4, 4) poses of frames ``ids`` on the device, with init corrections (differentiable)."""
+        """float32 (V, 4, 4) poses of frames ``ids`` on the device, with the init's corrections or, after the
+        init, the update's (``refine_poses``; differentiable)."""
         base = torch.stack([self._poses[i] for i in ids]).to(self.device, torch.float32)
+        if self.initialized and self.cfg.refine_poses:
+            return base @ se3_exp(torch.stack([self._pose_delta[i] for i in ids]))
         if self._pose_corr is None or not self._pose_corr.requires_grad:
             return base
         nc = self._pose_corr.shape[0]
@@ -232,6 +238,8 @@ class OptimisationStep:
             check_stop(self._should_stop, f"{kind} update (after {len(logs)} of {iters} iterations)")
             logs.append(self._step(ids, imgs, mode, n_coarse, n_fine, sw_window, scene_imgs, sparse))
         del imgs, sparse, scene_imgs
+        if self.initialized and self.cfg.refine_poses:
+            self._fold_pose_deltas(ids)
         release_free_memory()  # the update's temporaries are gone: their pages go back (fmapping.runtime)
         st = WindowStats(
             index=len(self._stats), kind=kind, seconds=time.perf_counter() - t0, iterations=iters,

@@ -47,6 +47,7 @@ class MapperStateIO:
             "stats": [s.to_dict() for s in self._stats],
             "rng": self._gen.get_state().clone(),
             "exposure": {int(i): p.detach().cpu().clone() for i, p in self._exposure.items()},
+            "pose_delta": {int(i): p.detach().cpu().clone() for i, p in self._pose_delta.items()},
             "sparse": None if self._sparse is None else self._sparse.state_dict(),
             "box_refits": self._box_refits,
         }
@@ -82,6 +83,9 @@ class MapperStateIO:
         self._exposure = {}
         for i, e in sorted(d.get("exposure", {}).items()):
             self._exposure[int(i)] = torch.nn.Parameter(e.clone().to(self.device), requires_grad=int(i) > 0)
+        self._pose_delta = {}
+        for i, e in sorted(d.get("pose_delta", {}).items()):
+            self._pose_delta[int(i)] = torch.nn.Parameter(e.clone().to(self.device), requires_grad=int(i) > 0)
         self.field, self._opt, self._pose_corr, self.aabb = None, None, None, None
         if d["field"] is not None:
             self._aabb_given, given = d["aabb"].clone(), self._aabb_given
