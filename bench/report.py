@@ -402,6 +402,10 @@ def _trim_note() -> str:
         notes.append("\nThe sparse points' per-frame observations kept as arrays (in the run above), side by side "
                      f"with the lists before (`long_run_sparse_obs/`): before {_ab_part(obs['before'])}; after "
                      f"{_ab_part(obs['after'])}.")
+    real = {k: load(f"long_run_7scenes/{k}") for k in ("png", "jpeg")}
+    if all(v is not None for v in real.values()):
+        notes.append("\n700 real 640x480 frames (7-Scenes long, `long_run_7scenes/`), keyframes kept as PNG: "
+                     f"{_ab_part(real['png'])}; as JPEG (the default): {_ab_part(real['jpeg'])}.")
     return "".join(notes)
 
 

@@ -61,7 +61,8 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
         self._pose_corr: Optional[torch.nn.Parameter] = None
         self._gen = torch.Generator().manual_seed(int(cfg.seed))
         # frames
-        self._images = ImageStore()  # uint8 (H, W, 3) of the window frames (raw) and keyframes (PNG beyond the window)
+        # uint8 (H, W, 3) of the window frames (raw) and keyframes (compressed beyond the window)
+        self._images = ImageStore(codec=cfg.keyframe_codec, quality=cfg.keyframe_jpeg_quality)
         self._depths: dict[int, Tensor] = {}
         self._poses: dict[int, Tensor] = {}  # float64 (4, 4) c2w of every frame seen (refined at init)
         self._timestamps: dict[int, float] = {}
