@@ -97,7 +97,7 @@ class TrackTriangulator:
         # frame id -> (point indices (M,) int64, pixels (M, 2) float64): compact, it grows with the sequence
         self._frame_obs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.frame_ids: list[int] = []
-        self._cuts: dict[tuple[int, float, int], float] = {}  # (frame id, quantile, min points) -> depth_quantile
+        self._cuts: dict[int, dict[tuple[float, int], float]] = {}  # frame id -> {(quantile, min points): depth}
 
     # -------------------------------------------------------------- input
     def add(self, fid: int, rgb: np.ndarray, c2w: np.ndarray) -> None:
@@ -130,7 +130,7 @@ class TrackTriangulator:
         for fid, c2w in poses.items():
             if fid in self._poses:
                 self._poses[fid] = np.array(c2w, np.float64)
-                self._forget_cuts(fid)
+                self._cuts.pop(fid, None)
 
     def flush(self) -> None:
         """Triangulate every live track now (the tracks restart at the next frame)."""
@@ -154,15 +154,12 @@ class TrackTriangulator:
         """The ``quantile`` of frame ``fid``'s sparse depths (:meth:`frame_depths`); NaN with fewer than
         ``min_points``. Kept until the frame's points or pose change: the scene box asks for every frame's
         at every window, so its cost must not grow with the sequence."""
-        key = (int(fid), float(quantile), int(min_points))
-        if key not in self._cuts:
+        cuts = self._cuts.setdefault(int(fid), {})
+        key = (float(quantile), int(min_points))
+        if key not in cuts:
             z = self.frame_depths(fid)[1]
-            self._cuts[key] = float(np.percentile(z, quantile)) if len(z) >= min_points else float("nan")
-        return self._cuts[key]
-
-    def _forget_cuts(self, fid: int) -> None:
-        for key in [k for k in self._cuts if k[0] == fid]:
-            del self._cuts[key]
+            cuts[key] = float(np.percentile(z, quantile)) if len(z) >= min_points else float("nan")
+        return cuts[key]
 
     def frame_fill(self, fid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Depth filled in between frame ``fid``'s points (:func:`fill_depths`): pixels, depths, weights."""
@@ -271,7 +268,7 @@ class TrackTriangulator:
             fid = int(obs_fid[a])
             idx, pix = self._frame_obs.get(fid, (np.zeros(0, np.int64), np.zeros((0, 2))))
             self._frame_obs[fid] = (np.concatenate([idx, obs_idx[a:b]]), np.concatenate([pix, obs_uv[a:b]]))
-            self._forget_cuts(fid)
+            self._cuts.pop(fid, None)
 
 
 def point_weights(err: np.ndarray, valid: np.ndarray, parallax_deg: np.ndarray, focal: float, min_rms: float,

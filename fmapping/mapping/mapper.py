@@ -117,9 +117,9 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
         if self._sparse is not None and fid not in self._guessed:  # a guessed pose would triangulate garbage
             self._sparse.add(fid, img.numpy(), pose.numpy())
         if self.cfg.exposure:
-            self._new_exposure(fid)
+            self._new_frame_param(self._exposure, "exposure", fid)
         if self.cfg.refine_poses:
-            self._new_pose_delta(fid)
+            self._new_frame_param(self._pose_delta, "pose_refine", fid)
         if not self.initialized:
             self._init_ids.append(fid)
             if len(self._init_ids) >= self.cfg.init_frames:
@@ -303,13 +303,15 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
         a, b = self._poses[n - 2], self._poses[n - 1]
         return b @ se3_inverse(a) @ b
 
-    # ================================================================ pose refinement
-    def _new_pose_delta(self, fid: int) -> None:
+    # ================================================================ per-frame parameters
+    def _new_frame_param(self, params: dict, group: str, fid: int) -> None:
+        """A zero (6,) parameter of frame ``fid`` in ``params`` (its exposure or pose correction; frame 0's
+        stays fixed), joining the optimiser's ``group`` when there is one."""
         p = torch.nn.Parameter(torch.zeros(6, dtype=torch.float32, device=self.device), requires_grad=fid > 0)
-        self._pose_delta[fid] = p
+        params[fid] = p
         if self._opt is not None and p.requires_grad:
             for g in self._opt.param_groups:
-                if g.get("name") == "pose_refine":
+                if g.get("name") == group:
                     g["params"].append(p)
 
     @torch.no_grad()
@@ -326,14 +328,6 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
             d.zero_()
 
     # ================================================================ exposure
-    def _new_exposure(self, fid: int) -> None:
-        p = torch.nn.Parameter(torch.zeros(6, dtype=torch.float32, device=self.device), requires_grad=fid > 0)
-        self._exposure[fid] = p
-        if self._opt is not None and p.requires_grad:
-            for g in self._opt.param_groups:
-                if g.get("name") == "exposure":
-                    g["params"].append(p)
-
     @torch.no_grad()
     def _start_exposures(self, ids: list[int], grid: tuple[int, int] = (40, 30)) -> None:
         """Where frames ``ids`` (entering their first window update) start their colour estimate: the

@@ -80,12 +80,8 @@ class MapperStateIO:
         self._box_refits = int(d.get("box_refits", 0))
         if self._sparse is not None and d.get("sparse") is not None:
             self._sparse.load_state_dict(d["sparse"])
-        self._exposure = {}
-        for i, e in sorted(d.get("exposure", {}).items()):
-            self._exposure[int(i)] = torch.nn.Parameter(e.clone().to(self.device), requires_grad=int(i) > 0)
-        self._pose_delta = {}
-        for i, e in sorted(d.get("pose_delta", {}).items()):
-            self._pose_delta[int(i)] = torch.nn.Parameter(e.clone().to(self.device), requires_grad=int(i) > 0)
+        self._exposure = self._frame_params(d.get("exposure", {}))
+        self._pose_delta = self._frame_params(d.get("pose_delta", {}))
         self.field, self._opt, self._pose_corr, self.aabb = None, None, None, None
         if d["field"] is not None:
             self._aabb_given, given = d["aabb"].clone(), self._aabb_given
@@ -101,6 +97,11 @@ class MapperStateIO:
                 elif self._pose_corr is not None:
                     self._pose_corr.requires_grad_(False)
             self._opt.load_state_dict(d["optimizer"])
+
+    def _frame_params(self, saved: dict) -> dict:
+        """Per-frame parameters (exposures, pose corrections) of a state, in frame order (frame 0 fixed)."""
+        return {int(i): torch.nn.Parameter(e.clone().to(self.device), requires_grad=int(i) > 0)
+                for i, e in sorted(saved.items())}
 
 
 def _cpu_tree(x):
