@@ -168,12 +168,6 @@ class TrackTriangulator:
         return fill_depths(uv, z, w, width, self.camera.height, at_width(cfg.fill_step_px, width),
                            at_width(cfg.fill_max_edge_px, width), cfg.fill_max_ratio)
 
-    def points_seen_by(self, fids) -> np.ndarray:
-        """(N, 3) points observed in any of the frames ``fids``."""
-        parts = [self._frame_obs[f][0] for f in fids if f in self._frame_obs]
-        idx = np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
-        return self.points[idx] if len(idx) else np.zeros((0, 3))
-
     # -------------------------------------------------------------- state
     def state_dict(self) -> dict:
         """Everything needed to go on exactly (tensors and plain python, for ``torch.load(weights_only=True)``)."""
