@@ -68,13 +68,13 @@ import report  # noqa: E402  (bench/report.py: the machine line)
 
 from fmapping import protocol as P  # noqa: E402
 
-# the library defaults except a shorter closing refinement (bounded run time); the init stage keeps its
-# 4 x 75 iterations: with 4 x 25 it does not converge (photo loss ~0.17, empty map even with GT poses)
+# the library defaults except a shorter closing refinement (bounded run time)
 BENCH_MAPPER = {"final_global_iters": 50, "device": "cpu"}
 QUICK_MAPPER = {
     "init_frames": 6, "init_rounds": [[0, 16], [3, 16]], "init_iters_per_round": 8,
     "window_size": 10, "n_global_keyframes": 4, "new_frames_per_window": 3, "iters_per_window": 4,
-    "keyframe_every": 3, "rays_per_iter": 256, "n_coarse": 16, "n_fine": 8, "final_global_iters": 8,
+    "keyframe_every": 3, "rays_per_iter": 256, "init_rays_per_iter": 256, "n_coarse": 16, "n_fine": 8,
+    "final_global_iters": 8,
     "device": "cpu", "field": {"resolution": 24},
 }
 SERVICES = ("play", "tracker", "mapper", "record", "view")
@@ -582,7 +582,9 @@ def main(argv=None) -> int:
     ap.add_argument("--poses", default="tracker", choices=["tracker", "gt"],
                     help="mapper pose source (gt: no tracker process; for comparison)")
     ap.add_argument("--init-iters", type=int, default=None,
-                    help="mapper init_iters_per_round (default: the library's, 75)")
+                    help="mapper init_iters_per_round (default: the library's)")
+    ap.add_argument("--mapper-set", default=None,
+                    help="YAML mapping of mapper overrides: '{init_iters_per_round: 75, field: {init_opacity: 0}}'")
     ap.add_argument("--threads", type=int, default=1, help="torch threads of the mapper and the tracker")
     ap.add_argument("--interval", type=float, default=0.5, help="seconds between samples")
     ap.add_argument("--work", default=str(Path(tempfile.gettempdir()) / "fmapping_bench_system"))
@@ -593,6 +595,10 @@ def main(argv=None) -> int:
     mapper_cfg = dict(BENCH_MAPPER)
     if a.init_iters is not None:
         mapper_cfg["init_iters_per_round"] = a.init_iters
+    if a.mapper_set:
+        import yaml
+
+        mapper_cfg.update(yaml.safe_load(a.mapper_set))
     view = not a.no_view
     if a.quick:
         a.frames, size, view, mapper_cfg = 24, (160, 120), False, dict(QUICK_MAPPER)

@@ -45,7 +45,8 @@ def wire_array(a: np.ndarray) -> dict:
 SMALL_MAPPER = {
     "init_frames": 4, "init_rounds": [[0, 16], [3, 16]], "init_iters_per_round": 4,
     "window_size": 6, "n_global_keyframes": 2, "new_frames_per_window": 2, "iters_per_window": 2,
-    "keyframe_every": 2, "rays_per_iter": 96, "n_coarse": 12, "n_fine": 4, "final_global_iters": 2,
+    "keyframe_every": 2, "rays_per_iter": 96, "init_rays_per_iter": 96, "n_coarse": 12, "n_fine": 4,
+    "final_global_iters": 2,
     "device": "cpu", "seed": 0,
     "field": {"resolution": 12, "density_components": 4, "appearance_components": 4, "app_features": 8, "hidden": 8},
 }

@@ -1,5 +1,7 @@
 """Fields: interpolation against slow explicit references, finite-difference gradients,
 out-of-box behaviour, snapshots and parameter counts."""
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -179,13 +181,37 @@ def test_outside_points_are_empty_and_finite(kind):
 
 @pytest.mark.parametrize("kind", ["cp", "vm", "grid", "mlp"])
 def test_initial_field_is_clear(kind):
-    cfg = FieldConfig(kind=kind)
+    cfg = FieldConfig(kind=kind, init_opacity=0.0)
     f = build_field(cfg, AABB)
     x = torch.tensor(_points(4096, seed=5), dtype=torch.float32)
     with torch.no_grad():
         sigma = torch.nn.functional.softplus(f.density_raw(x) + cfg.density_shift)
     # optical thickness of 5 m of the initial field is below 2 %
     assert float(sigma.max()) * 5.0 < 0.02
+
+
+@pytest.mark.parametrize("kind", ["cp", "vm"])
+@pytest.mark.parametrize("opacity", [0.5, 0.95])
+def test_foggy_start_absorbs_the_asked_share_across_the_box(kind, opacity):
+    # cp / vm start as a uniform fog: a ray crossing the box's mean side absorbs init_opacity of its light. The
+    # optical depth of the mean side is integrated from the field's own density at random points (the factor noise
+    # makes the fog uneven, so the share is checked on the mean density)
+    box = torch.tensor([[-1.0, -2.0, 0.0], [3.0, 1.0, 2.5]])
+    cfg = FieldConfig(kind=kind, init_opacity=opacity)
+    f = build_field(cfg, box)
+    x = box[0] + (box[1] - box[0]) * torch.rand(20000, 3, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        sigma = torch.nn.functional.softplus(f.density_raw(x) + cfg.density_shift)
+    side = float((box[1] - box[0]).mean())
+    absorbed = 1.0 - math.exp(-float(sigma.mean()) * side)
+    assert abs(absorbed - opacity) < 0.05 * opacity
+    # occupancy mode: each sample at the opacity of one cell of that fog, so a ray of resolution - 1 samples across
+    # the mean side absorbs the same share
+    occ = FieldConfig(kind=kind, init_opacity=opacity, alpha_mode="occupancy")
+    with torch.no_grad():
+        alpha = torch.sigmoid(build_field(occ, box).density_raw(x) + occ.density_shift)
+    through = float(torch.exp(torch.log1p(-alpha).mean() * (occ.resolution - 1)))
+    assert abs((1.0 - through) - opacity) < 0.05 * opacity
 
 
 def test_cp_parameter_count_matches_paper_budget():

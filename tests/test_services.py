@@ -386,7 +386,8 @@ def test_tracker_core_waits_for_the_map_then_answers_every_frame(dataset):
     for i in range(6):
         assert core.handle("frames", P.encode(P.frame_from_dataset(dataset[i], seq=i))) == []  # no map: wait
     assert core.ack == -1 and len(core.waiting) == 6
-    fcfg = FieldConfig(resolution=8, density_components=2, appearance_components=2, app_features=4, hidden=4)
+    fcfg = FieldConfig(resolution=8, density_components=2, appearance_components=2, app_features=4, hidden=4,
+                       init_opacity=0.0)  # clear, not the mapper's foggy start
     field = build_field(fcfg, np.array([[-3.0, -3, -1], [3, 3, 4]]))
     import dataclasses
 
@@ -420,7 +421,8 @@ def test_tracker_core_answers_lost_when_the_map_is_empty(dataset):
 
     # reference depth rendered from the map, which is empty (clear field)
     core = TrackerCore(opts=TrackerServiceOptions(frontend="map"))
-    fcfg = FieldConfig(resolution=8, density_components=2, appearance_components=2, app_features=4, hidden=4)
+    fcfg = FieldConfig(resolution=8, density_components=2, appearance_components=2, app_features=4, hidden=4,
+                       init_opacity=0.0)  # clear, not the mapper's foggy start
     field = build_field(fcfg, np.array([[-3.0, -3, -1], [3, 3, 4]]))
     snap = P.FieldSnapshot(version=1, kind="cp", config={"field": dataclasses.asdict(fcfg), "n_coarse": 8, "n_fine": 0},
                            aabb=np.array([[-3.0, -3, -1], [3, 3, 4]]), arrays=field.snapshot(), frame_seq=0)

@@ -12,6 +12,7 @@ mapper:
   init_iters_per_round: 2
   iters_per_window: 1
   rays_per_iter: 64
+  init_rays_per_iter: 64
   n_coarse: 8
   n_fine: 4
   final_global_iters: 0

@@ -26,6 +26,7 @@ Conventions (stated once for all of :mod:`fmapping.field`):
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
@@ -52,6 +53,12 @@ class FieldConfig:
     #                                "occupancy": alpha = sigmoid(raw+shift) (UNISURF)
     density_shift: float = -10.0   # start clear: softplus(0-10) ~ 4.5e-5
     init_scale: float = 0.1        # std of factor init
+    # cp / vm: the share of light a ray crossing the box's mean side absorbs at the start (a uniform fog of density
+    # -ln(1 - init_opacity) / side; in occupancy mode the opacity of one cell of that fog per sample). 0: clear, as
+    # TensoRF starts (softplus(0 - 10) ~ 4.5e-5 /m). From clear, the density needs ~40 Adam steps at lr 0.02 to
+    # appear at all (an init of 4 x 25 iterations left an empty map); from the fog the photometric, warping and
+    # photo-consistency losses carve the surfaces from the first step (bench/init_speed.py)
+    init_opacity: float = 0.95
     view_dependent: bool = False   # feed view directions (with PE) to the colour MLP
     view_pe_freqs: int = 2         # PE frequencies of the view direction when view_dependent
     mlp_layers: int = 4            # iMAP-like baseline: hidden layers
@@ -84,6 +91,8 @@ class FieldConfig:
             raise ValueError("field.pe_freqs and field.view_pe_freqs must be >= 0")
         if not self.init_scale > 0:
             raise ValueError(f"field.init_scale must be > 0, got {self.init_scale}")
+        if not 0 <= self.init_opacity < 1:
+            raise ValueError(f"field.init_opacity must be in [0, 1), got {self.init_opacity}")
         if not self.grid_init_density > 0:
             raise ValueError(f"field.grid_init_density must be > 0, got {self.grid_init_density}")
         if not self.vm_plane_lr_scale > 0:
@@ -105,6 +114,19 @@ def as_aabb(aabb, device=None, dtype=torch.float32) -> Tensor:
     if device is None and isinstance(aabb, Tensor):
         device = aabb.device
     return t.to(device=device, dtype=dtype)
+
+
+def start_raw(cfg: FieldConfig, aabb: Tensor) -> float:
+    """The pre-activation of a uniform start of ``cfg.init_opacity`` across the box's mean side (see
+    :class:`FieldConfig`); ``-inf`` for a clear start (``init_opacity`` 0)."""
+    if cfg.init_opacity <= 0:
+        return float("-inf")
+    side = float((aabb[1] - aabb[0]).double().mean())
+    sigma = -math.log1p(-cfg.init_opacity) / side
+    if cfg.alpha_mode == "occupancy":
+        alpha = -math.expm1(-sigma * side / max(cfg.resolution - 1, 1))
+        return math.log(alpha / (1.0 - alpha)) - cfg.density_shift
+    return math.log(math.expm1(sigma)) - cfg.density_shift
 
 
 def tv_1d(x: Tensor) -> Tensor:

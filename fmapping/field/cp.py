@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .base import Field, FieldConfig, as_aabb, make_generator, randn_param, tv_1d
+from .base import Field, FieldConfig, as_aabb, make_generator, randn_param, start_raw, tv_1d
 from .decoder import ColorDecoder, linear
 
 
@@ -87,6 +87,10 @@ class CPField(Field):
         R, cd, ca = cfg.resolution, cfg.density_components, cfg.appearance_components
         self.density_lines = randn_param((3, cd, R, 1), cfg.init_scale, dev, g)
         self.app_lines = randn_param((3, ca, R, 1), cfg.init_scale, dev, g)
+        raw = start_raw(cfg, self.aabb)
+        if raw > 0:  # every rank-one term at raw / cd: each of its three lines at the cube root (plus the noise)
+            with torch.no_grad():
+                self.density_lines.add_((raw / cd) ** (1.0 / 3.0))
         self.basis = linear(ca, cfg.app_features, g, bias=False, device=dev)
         self.decoder = ColorDecoder(cfg.app_features, cfg.hidden, g, cfg.view_dependent, cfg.view_pe_freqs, dev)
 

@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .base import Field, FieldConfig, make_generator, randn_param, tv_1d
+from .base import Field, FieldConfig, make_generator, randn_param, start_raw, tv_1d
 from .cp import sample_lines
 from .decoder import ColorDecoder, linear
 
@@ -62,6 +62,11 @@ class VMField(Field):
         self.density_lines = randn_param((3, cd, R, 1), cfg.init_scale, dev, g)
         self.app_planes = randn_param((3, ca, R, R), cfg.init_scale, dev, g)
         self.app_lines = randn_param((3, ca, R, 1), cfg.init_scale, dev, g)
+        raw = start_raw(cfg, self.aabb)
+        if raw > 0:  # every plane x line term at raw / (3 cd): plane and line at its square root (plus the noise)
+            with torch.no_grad():
+                for p in (self.density_planes, self.density_lines):
+                    p.add_((raw / (3 * cd)) ** 0.5)
         self.basis = linear(3 * ca, cfg.app_features, g, bias=False, device=dev)
         self.decoder = ColorDecoder(cfg.app_features, cfg.hidden, g, cfg.view_dependent, cfg.view_pe_freqs, dev)
 

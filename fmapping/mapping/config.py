@@ -28,7 +28,14 @@ class MapperConfig:
     # --- init stage
     init_frames: int = 15
     init_rounds: tuple = ((0, 32), (3, 64), (4, 64), (5, 64))  # (sliding window size (0 = stratified), samples per ray)
-    init_iters_per_round: int = 75
+    # 4 x 20 iterations of 512 rays, the grid's lr going geometrically from init_lr_grid to lr_grid, from a foggy start
+    # (field.init_opacity): 4.0-5.8 s on 2 cores against 21-29 s for the 4 x 75 x 1024 rays at lr 0.02 from a clear
+    # start before 2026-12-04, with a lower depth error after it on 3 of 4 synthetic rooms (bench/init_speed.py). The
+    # final maps (GT poses) are about 1 point of completion ratio lower; the old init: 75, 1024, 0.02 and
+    # field.init_opacity 0 (bench/results/init_fog/)
+    init_iters_per_round: int = 20
+    init_rays_per_iter: int = 512
+    init_lr_grid: float = 0.05
     optimize_init_poses: bool = True  # frame 0 fixed; se(3) corrections for the others
     freeze_decoder_after_init: bool = True
     # --- on-the-fly stage
@@ -147,8 +154,11 @@ class MapperConfig:
             raise ValueError(f"MapperConfig.warp_depth must be 'far' or 'expected', got {self.warp_depth!r}")
         if not 0 < self.near < self.far:
             raise ValueError(f"MapperConfig: need 0 < near < far, got near={self.near}, far={self.far}")
-        if self.rays_per_iter < 1 or self.n_coarse < 2:
-            raise ValueError("MapperConfig: rays_per_iter must be >= 1 and n_coarse >= 2")
+        if self.rays_per_iter < 1 or self.init_rays_per_iter < 1 or self.n_coarse < 2:
+            raise ValueError("MapperConfig: rays_per_iter and init_rays_per_iter must be >= 1 and n_coarse >= 2")
+        if not self.init_lr_grid > 0 or self.init_iters_per_round < 1:
+            raise ValueError(f"MapperConfig: need init_lr_grid > 0 and init_iters_per_round >= 1, got "
+                             f"{self.init_lr_grid}, {self.init_iters_per_round}")
         for r in self.init_rounds:
             if len(r) != 2 or r[0] < 0 or r[1] < 2:
                 raise ValueError(f"MapperConfig.init_rounds entries are (window >= 0, samples >= 2), got {r!r}")

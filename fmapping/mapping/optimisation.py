@@ -21,7 +21,7 @@ gradients, see :func:`fmapping.mapping.batch_render.render_batch`) and minimises
 from __future__ import annotations
 
 import time
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 import torch
@@ -44,7 +44,7 @@ class OptimisationStep:
     def _make_optimizer(self) -> None:
         cfg = self.cfg
         # one "grid" group per (params, lr multiplier) of the field (cp / vm / mlp: one, x1)
-        groups = [{"params": list(ps), "lr": cfg.lr_grid * scale, "name": "grid"}
+        groups = [{"params": list(ps), "lr": cfg.lr_grid * scale, "name": "grid", "lr_scale": scale}
                   for ps, scale in self.field.grid_param_groups()]
         groups.append({"params": list(self.field.decoder_parameters()), "lr": cfg.lr_decoder, "name": "decoder"})
         if self._pose_corr is not None:
@@ -62,6 +62,12 @@ class OptimisationStep:
         for g in self._opt.param_groups:
             if g.get("name") == name:
                 g["lr"] = lr
+
+    def _set_grid_lr(self, lr: float) -> None:
+        """The grid's learning rate (each grid group at ``lr`` x its own multiplier)."""
+        for g in self._opt.param_groups:
+            if g.get("name") == "grid":
+                g["lr"] = lr * g.get("lr_scale", 1.0)
 
     def _freeze_decoder(self) -> None:
         for p in self.field.decoder_parameters():
@@ -123,13 +129,15 @@ class OptimisationStep:
                 torch.as_tensor(w, dtype=torch.float32, device=dev))
 
     def _step(self, ids: list[int], imgs: Tensor, mode: str, n_coarse: int, n_fine: int, sw_window: int = 0,
-              scene_imgs: Optional[Tensor] = None, sparse: Optional[tuple] = None) -> dict:
+              scene_imgs: Optional[Tensor] = None, sparse: Optional[tuple] = None,
+              n_rays: Optional[int] = None) -> dict:
         """One optimisation iteration over the window ``ids`` (images ``imgs``, float (V, H, W, 3)).
         ``scene_imgs``: the images with each frame's exposure undone (for the losses that compare
-        views with each other); ``sparse``: the window's triangulated points (:meth:`_sparse_batch`)."""
+        views with each other); ``sparse``: the window's triangulated points (:meth:`_sparse_batch`);
+        ``n_rays``: rays of the batch (default ``rays_per_iter``)."""
         cfg, cam = self.cfg, self.camera
         scene_imgs = imgs if scene_imgs is None else scene_imgs
-        n_rays = cfg.rays_per_iter
+        n_rays = cfg.rays_per_iter if n_rays is None else n_rays
         n_views = len(ids)
         gen = self._gen
         # each ray: a random pixel (pix_u, pix_v) of a random window view (its index into ids: ray_view)
@@ -228,15 +236,21 @@ class OptimisationStep:
         return ((w * (cost - cbar) * valid).sum(-1)).mean()
 
     def _run_iters(self, kind: str, ids: list[int], iters: int, mode: str, n_coarse: int, n_fine: int,
-                   sw_window: int = 0, t0: Optional[float] = None) -> WindowStats:
+                   sw_window: int = 0, t0: Optional[float] = None, n_rays: Optional[int] = None,
+                   grid_lrs: Optional[Sequence[float]] = None) -> WindowStats:
+        """``iters`` iterations over the frames ``ids``; ``grid_lrs``: the grid's lr for each of them
+        (default: the optimiser's as it is)."""
         t0 = time.perf_counter() if t0 is None else t0
+        n_rays = self.cfg.rays_per_iter if n_rays is None else n_rays
         imgs = self._images_f(ids)
         sparse = self._sparse_batch(ids)
         scene_imgs = self._scene_images(ids, imgs)  # the exposures move slowly: undone once per update
         logs = []
-        for _ in range(iters):
+        for it in range(iters):
             check_stop(self._should_stop, f"{kind} update (after {len(logs)} of {iters} iterations)")
-            logs.append(self._step(ids, imgs, mode, n_coarse, n_fine, sw_window, scene_imgs, sparse))
+            if grid_lrs is not None:
+                self._set_grid_lr(grid_lrs[it])
+            logs.append(self._step(ids, imgs, mode, n_coarse, n_fine, sw_window, scene_imgs, sparse, n_rays))
         del imgs, sparse, scene_imgs
         if self.initialized and self.cfg.refine_poses:
             self._fold_pose_deltas(ids)
@@ -248,7 +262,7 @@ class OptimisationStep:
             warp_loss=float(np.mean([x["warp"] for x in logs[-5:]])) if logs else float("nan"),
             pc_loss=float(np.mean([x["pc"] for x in logs[-5:]])) if logs else float("nan"),
             sparse_loss=float(np.mean([x["sparse"] for x in logs[-5:]])) if logs else float("nan"),
-            rays=self.cfg.rays_per_iter * iters,
+            rays=n_rays * iters,
             samples_per_ray=logs[-1]["samples"] if logs else 0, frames=list(ids),
         )
         return st

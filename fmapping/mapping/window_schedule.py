@@ -6,9 +6,12 @@ Stages (paper, Sec. "System overview"):
 
 * **Init**: the first ``init_frames`` frames are optimised jointly with the
   field over four sampling rounds ``init_rounds`` = (sliding-window size, samples
-  per ray); window size 0 is plain stratified sampling. Frame 0 is fixed; the
-  other init poses get se(3) corrections when ``optimize_init_poses``. The colour
-  decoder is frozen afterwards.
+  per ray); window size 0 is plain stratified sampling. Each round runs
+  ``init_iters_per_round`` iterations of ``init_rays_per_iter`` rays; the grid's
+  learning rate falls geometrically from ``init_lr_grid`` to ``lr_grid`` over the
+  whole init (:func:`init_grid_lrs`), from a field that starts as a fog
+  (``field.init_opacity``). Frame 0 is fixed; the other init poses get se(3)
+  corrections when ``optimize_init_poses``. The colour decoder is frozen afterwards.
 * **On the fly**: an active window of ``window_size`` frames = up to
   ``n_global_keyframes`` global keyframes (half chosen for overlap with the
   recent frames, half at random for coverage) + the most recent local frames.
@@ -64,19 +67,23 @@ class WindowSchedule:
         ids = list(self._init_ids)
         st = None
         total = {"iters": 0, "loss": [], "photo": [], "warp": []}
+        n = cfg.init_iters_per_round
+        lrs = init_grid_lrs(cfg.init_lr_grid, cfg.lr_grid, n * len(cfg.init_rounds))
         for r, (window, samples) in enumerate(cfg.init_rounds):
             # exposures start after the first round: from an empty map, a colour offset would explain the images
             self._set_lr("exposure", cfg.lr_exposure if r > 0 else 0.0)
+            kw = dict(n_rays=cfg.init_rays_per_iter, grid_lrs=lrs[r * n:(r + 1) * n])
             if window == 0:
-                s = self._run_iters("init", ids, cfg.init_iters_per_round, "stratified", samples, 0)
+                s = self._run_iters("init", ids, n, "stratified", samples, 0, **kw)
             else:  # the round's samples = the coarse stratified ones + (samples - n_coarse) sliding-window ones
-                s = self._run_iters("init", ids, cfg.init_iters_per_round, "sliding_window", cfg.n_coarse,
-                                    max(1, samples - cfg.n_coarse), sw_window=window)
+                s = self._run_iters("init", ids, n, "sliding_window", cfg.n_coarse, max(1, samples - cfg.n_coarse),
+                                    sw_window=window, **kw)
             total["iters"] += s.iterations
             total["loss"].append(s.loss)
             total["photo"].append(s.photo_loss)
             total["warp"].append(s.warp_loss)
             st = s
+        self._set_grid_lr(cfg.lr_grid)
         # bake the pose corrections and freeze the decoder
         if self._pose_corr is not None:
             with torch.no_grad():
@@ -106,7 +113,7 @@ class WindowSchedule:
         self._window = ids
         stats = WindowStats(index=len(self._stats), kind="init", seconds=time.perf_counter() - t0,
                             iterations=total["iters"], loss=total["loss"][-1], photo_loss=total["photo"][-1],
-                            warp_loss=total["warp"][-1], rays=cfg.rays_per_iter * total["iters"],
+                            warp_loss=total["warp"][-1], rays=cfg.init_rays_per_iter * total["iters"],
                             samples_per_ray=st.samples_per_ray if st else 0, frames=ids,
                             pc_loss=st.pc_loss if st else 0.0, sparse_loss=st.sparse_loss if st else 0.0)
         self._stats.append(stats)
@@ -222,6 +229,13 @@ class WindowSchedule:
         perm = torch.randperm(len(rest), generator=self._gen).tolist()
         chosen += [rest[j] for j in perm[:k - n_best]]
         return sorted(chosen)
+
+
+def init_grid_lrs(start: float, end: float, n: int) -> list[float]:
+    """The grid's learning rate at each of the init's ``n`` iterations: geometric from ``start`` to ``end``."""
+    if n <= 1:
+        return [float(end)] * n
+    return [float(start * (end / start) ** (i / (n - 1))) for i in range(n)]
 
 
 def _orthonormalize(p: Tensor) -> Tensor:
