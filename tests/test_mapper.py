@@ -192,8 +192,8 @@ def test_a_short_init_from_the_fog_finds_the_surfaces_a_clear_start_misses():
                           field=FieldConfig(resolution=64, init_opacity=opacity))
         m = Mapper(cfg, cam, aabb=room_aabb(scene))
         seen = []
-        orig = m._set_grid_lr
-        m._set_grid_lr = lambda lr: (seen.append(lr), orig(lr))
+        orig = m._set_lr
+        m._set_lr = lambda name, lr: (name == "grid" and seen.append(lr), orig(name, lr))
         feed(m, views, c2w, 0, 6)
         errs[opacity] = _median_depth_error(m, views, c2w, range(6))
         assert seen[0] == pytest.approx(cfg.init_lr_grid) and seen[-1] == pytest.approx(cfg.lr_grid)

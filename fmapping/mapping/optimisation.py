@@ -59,14 +59,10 @@ class OptimisationStep:
         self._opt = torch.optim.Adam(groups, betas=(0.9, 0.99))
 
     def _set_lr(self, name: str, lr: float) -> None:
+        """The learning rate of the groups called ``name``, each at ``lr`` x its own multiplier (``lr_scale``:
+        the field's grid groups, e.g. the VM planes; 1 elsewhere)."""
         for g in self._opt.param_groups:
             if g.get("name") == name:
-                g["lr"] = lr
-
-    def _set_grid_lr(self, lr: float) -> None:
-        """The grid's learning rate (each grid group at ``lr`` x its own multiplier)."""
-        for g in self._opt.param_groups:
-            if g.get("name") == "grid":
                 g["lr"] = lr * g.get("lr_scale", 1.0)
 
     def _freeze_decoder(self) -> None:
@@ -249,7 +245,7 @@ class OptimisationStep:
         for it in range(iters):
             check_stop(self._should_stop, f"{kind} update (after {len(logs)} of {iters} iterations)")
             if grid_lrs is not None:
-                self._set_grid_lr(grid_lrs[it])
+                self._set_lr("grid", grid_lrs[it])
             logs.append(self._step(ids, imgs, mode, n_coarse, n_fine, sw_window, scene_imgs, sparse, n_rays))
         del imgs, sparse, scene_imgs
         if self.initialized and self.cfg.refine_poses:

@@ -83,7 +83,7 @@ class WindowSchedule:
             total["photo"].append(s.photo_loss)
             total["warp"].append(s.warp_loss)
             st = s
-        self._set_grid_lr(cfg.lr_grid)
+        self._set_lr("grid", cfg.lr_grid)
         # bake the pose corrections and freeze the decoder
         if self._pose_corr is not None:
             with torch.no_grad():
