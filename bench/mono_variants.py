@@ -85,8 +85,8 @@ def run(frames, camera, mono_cfg, trk_cfg) -> dict:
                 spent[key] += time.perf_counter() - t
         return wrapped
 
-    klt = fe_mod.klt_track
-    fe_mod.klt_track = timed(klt, "klt")
+    klt = fe_mod.klt_track_gain
+    fe_mod.klt_track_gain = timed(klt, "klt")
     fe.tracker.track = timed(fe.tracker.track, "direct")
     try:
         g0 = frames[0].c2w
@@ -108,7 +108,7 @@ def run(frames, camera, mono_cfg, trk_cfg) -> dict:
         fe.flush_ba()
         est.update(fe.poses())
     finally:
-        fe_mod.klt_track = klt
+        fe_mod.klt_track_gain = klt
     ids = sorted(est)
     a = ate(np.stack([est[k] for k in ids]), np.stack([frames[k].c2w for k in ids]), align="sim3")
     ba_ms = [b["ms"] for b in fe.ba_stats]

@@ -58,7 +58,8 @@ BEFORE = {"bounds": "frusta", "sparse_depth_weight": 0.0, "exposure": False}
 QUICK_MAPPER = {"init_iters_per_round": 20, "final_global_iters": 20}
 LOOP_MAX_M, LOOP_MAX_DEG = 0.10, 5.0  # a loop whose relative pose is farther than this from the GT's is wrong
 
-# (key in a run's metrics, measure shown, comparison, target, digits)
+# (key in a run's metrics, measure shown, comparison, target, digits); a comparison without a target only
+# says which seed is the worst
 TARGETS = {
     "7scenes_map": [("accuracy_cm", "accuracy cm", "<=", 5.0, 2), ("completion_cm", "completion cm", "<=", 5.0, 2),
                     ("completion_ratio", "completion ratio % (5 cm)", ">=", 70.0, 1),
@@ -67,6 +68,7 @@ TARGETS = {
                     ("window_seconds_min", "window s min", None, None, 2),
                     ("total_seconds", "total s", None, None, 0)],
     "7scenes_slam": [("ate_sim3_cm", "ATE Sim3 cm", "<=", 3.0, 2),
+                     ("frames_posed_pct", "frames with a pose %", ">=", None, 1),
                      ("completion_ratio_sim3", "completion ratio % after Sim3", ">=", 60.0, 1),
                      ("accuracy_cm_sim3", "accuracy cm after Sim3", None, None, 2),
                      ("window_seconds_median", "window s median", None, None, 2),
@@ -82,8 +84,9 @@ TARGETS = {
                   ("accuracy_cm", "accuracy cm", "<=", 2.5, 2),
                   ("window_seconds_median", "window s median", None, None, 2)],
     "synth_slam": [("ate_sim3_cm", "ATE Sim3 cm", "<=", 2.0, 2),
+                   ("frames_posed_pct", "frames with a pose %", ">=", None, 1),
                    ("scale_error_pct", "abs(Sim3 scale - 1) %", "<=", 5.0, 2),
-                   ("completion_ratio_sim3", "completion ratio % after Sim3", None, None, 1)],
+                   ("completion_ratio_sim3", "completion ratio % after Sim3", ">=", None, 1)],
     "tum_rpy": [("psnr_heldout", "held-out PSNR dB", ">=", 20.0, 2),
                 ("window_seconds_median", "window s median", None, None, 2)],
     "lego": [("psnr_novel_views", "novel-view PSNR dB", ">=", 25.0, 2), ("seconds", "seconds", None, None, 0)],
@@ -92,6 +95,12 @@ TARGETS = {
 
 def log(msg: str) -> None:
     print(f"[real] {msg}", flush=True)
+
+
+def posed_pct(summary: dict) -> Optional[float]:
+    """Share of a slam run's frames with a pose (a restarted monocular bootstrap leaves the first without)."""
+    n = summary.get("frames_posed")
+    return None if n is None or not summary.get("frames") else 100.0 * n / summary["frames"]
 
 
 # ----------------------------------------------------------------------------- configs
@@ -430,6 +439,7 @@ class Bench:
         align, est = sim3_to_gt(out / "traj.txt", gt)
         rec = recon(st, out, data / "gt_points.ply", align) if align is not None else None
         r = {"frames": s["frames"], "frames_mapped": s.get("frames_mapped"), "total_seconds": secs,
+             "frames_posed_pct": posed_pct(s),
              "ate_sim3_cm": None if s.get("ate_sim3_rmse_m") is None else 100 * s["ate_sim3_rmse_m"],
              "ate_se3_cm": None if s.get("ate_se3_rmse_m") is None else 100 * s["ate_se3_rmse_m"],
              "sim3_scale": None if align is None else float(align[0]), "output_scale": s.get("output_scale"),
@@ -514,7 +524,7 @@ class Bench:
             sim3 = ((st.get("ate") or {}).get("sim3") or {}).get("scale")
             ds = open_dataset(data)
             align, _ = sim3_to_gt(out / "traj.txt", list(ds.gt_poses))
-            r = {"variety": used, "total_seconds": time.perf_counter() - t0,
+            r = {"variety": used, "total_seconds": time.perf_counter() - t0, "frames_posed_pct": posed_pct(s),
                  "ate_sim3_cm": None if s.get("ate_sim3_rmse_m") is None else 100 * s["ate_sim3_rmse_m"],
                  "sim3_scale": sim3, "output_scale": s.get("output_scale"),
                  "scale_error_pct": None if sim3 is None else 100 * abs(sim3 - 1.0),
@@ -590,7 +600,7 @@ def _f(x, nd: int = 2) -> str:
 
 
 def _met(v, op, target) -> str:
-    if op is None:
+    if op is None or target is None:
         return ""
     if v is None:
         return "-"
@@ -606,15 +616,15 @@ def table_rows(res: dict) -> list[dict]:
                             "met": "no"})
                 continue
             for key, label, op, target, nd in TARGETS[row]:
-                tgt = "" if op is None else f"{op} {target:g}"
+                tgt = "" if op is None or target is None else f"{op} {target:g}"
                 if "seeds" in r:  # the worst seed decides; every seed shown
                     vals = {s: v.get(key) for s, v in r["seeds"].items()}
                     known = [v for v in vals.values() if v is not None]
                     worst = None if not known else (min(known) if op == ">=" else max(known))
                     value = f"{_f(worst, nd)} (" + ", ".join(
                         f"s{s} {'error' if 'error' in r['seeds'][s] else _f(v, nd)}" for s, v in vals.items()) + ")"
-                    met = "-" if op is None or len(known) < len(vals) else _met(worst, op, target)
-                    if op is None:
+                    met = "-" if len(known) < len(vals) else _met(worst, op, target)
+                    if op is None or target is None:
                         met = ""
                     label_ = f"{label}, worst seed"
                 else:

@@ -299,8 +299,9 @@ class SlamSession:
 
 
 def session_config_from(slam_cfg) -> SessionConfig:
-    """The session policy of ``fmapping slam`` (:class:`fmapping.slam.SlamConfig`)."""
-    return SessionConfig(republish=bool(slam_cfg.mapper_follows_ba))
+    """The session policy of ``fmapping slam`` (:class:`fmapping.slam.SlamConfig`): a failed bootstrap
+    starts again at the next frame, as in the tracker service."""
+    return SessionConfig(republish=bool(slam_cfg.mapper_follows_ba), restart_failed_bootstrap=True)
 
 
 __all__ = ["PoseSession", "PoseUpdate", "SessionConfig", "SlamSession", "session_config_from"]

@@ -28,7 +28,7 @@ from typing import Optional
 import numpy as np
 
 from fmapping.camera import PinholeCamera
-from fmapping.tracking.features import KltConfig, at_width, detect_corners, klt_track, to_u8
+from fmapping.tracking.features import KltConfig, at_width, detect_corners, klt_track_gain, to_u8
 
 
 @dataclass
@@ -88,6 +88,7 @@ class TrackTriangulator:
                               min_distance=max(3, int(round(at_width(self.cfg.min_distance, w)))))
         self._reproj = at_width(self.cfg.max_reproj_px, w)
         self._grey: Optional[np.ndarray] = None
+        self._gain = 1.0  # exposure of the last frame over the one before
         self._last_fid: Optional[int] = None
         self._uv = np.zeros((0, 2), np.float64)  # current pixel of each live track
         self._obs: list[list[tuple[int, np.ndarray]]] = []  # per live track: [(frame id, uv)]
@@ -106,7 +107,9 @@ class TrackTriangulator:
         self._poses[fid] = np.asarray(c2w, np.float64)
         self.frame_ids.append(fid)
         if self._grey is not None and len(self._uv):
-            uv, ok = klt_track(self._grey, grey, self._uv.astype(np.float32), self._klt)
+            # the last step's exposure change predicts this one's (klt_track_gain measures and corrects it)
+            uv, ok, self._gain = klt_track_gain(self._grey, grey, self._uv.astype(np.float32), self._klt,
+                                                gain=self._gain)
             ended = [o for o, k in zip(self._obs, ok) if not k]
             self._obs = [o for o, k in zip(self._obs, ok) if k]
             self._uv = np.asarray(uv[ok], np.float64)

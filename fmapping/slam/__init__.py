@@ -51,8 +51,12 @@ Init failure (map front end): after the init stage the first init frames are ali
 back to the last one with the rendered depth; if the inlier ratio is low or the map
 renders too few pixels, init is retried with ``init_retry_frames`` more frames (up to
 ``init_retries`` times), then tracking falls back to constant-depth references until
-the map renders depth (reported in ``notes``). A failed monocular bootstrap falls back
-to the map front end. Tracking loss is reported per frame in ``tracking_loss_events``.
+the map renders depth (reported in ``notes``). A failed monocular bootstrap starts again
+at the next frame, as in the tracker service (frame 0 and the frames 0..14 above are then
+the bootstrap's own first frame and the 14 after it, anchored at their GT poses); the
+frames before it have no pose and are left out of ``traj.txt`` and the ATE
+(``frames_posed``). Only a bootstrap that never succeeds falls back to the map front end.
+Tracking loss is reported per frame in ``tracking_loss_events``.
 """
 from fmapping.slam.config import SlamConfig, build_slam_config
 from fmapping.slam.job import run_slam

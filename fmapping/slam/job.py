@@ -21,14 +21,20 @@ from fmapping.slam.run import SlamRun
 log = logging.getLogger("fmapping.slam")
 
 
+def _with_gt(est: np.ndarray, gt: list) -> tuple[np.ndarray, np.ndarray]:
+    """The estimated and GT poses of the frames that have both (``gt`` entries may be None)."""
+    ok = [j for j, g in enumerate(gt) if g is not None]
+    if not ok:
+        return np.zeros((0, 4, 4)), np.zeros((0, 4, 4))
+    return np.stack([est[j] for j in ok]), np.stack([gt[j] for j in ok])
+
+
 def _ate_block(est: np.ndarray, gt: list) -> Optional[dict]:
     from fmapping.metrics import ate
 
-    ok = [i for i, g in enumerate(gt) if g is not None]
-    if len(ok) < 3:
+    e, g = _with_gt(est, gt)
+    if len(e) < 3:
         return None
-    e = np.stack([est[i] for i in ok])
-    g = np.stack([gt[i] for i in ok])
     res = {}
     for a in ("se3", "sim3", "none"):
         try:
@@ -44,11 +50,11 @@ def _sim3_to_gt(est: np.ndarray, gt: list) -> Optional[tuple]:
     """(s, R, t) aligning the estimated camera positions to the GT ones (as the Sim3 ATE does)."""
     from fmapping.metrics import align_trajectory
 
-    ok = [i for i, g in enumerate(gt) if g is not None]
-    if len(ok) < 3:
+    e, g = _with_gt(est, gt)
+    if len(e) < 3:
         return None
     try:
-        return align_trajectory(np.stack([est[i] for i in ok]), np.stack([gt[i] for i in ok]), "sim3")[1]
+        return align_trajectory(e, g, "sim3")[1]
     except (ValueError, np.linalg.LinAlgError):
         return None
 
@@ -82,8 +88,8 @@ def run_slam(job: Job, should_stop: StopFn = None) -> dict:
     run = SlamRun(ds, cfg, poses_mode, out, progress=not job.quiet, should_stop=should_stop)
     run.run()
     t_loop = time.perf_counter() - t_start
-    est = run.output_poses()
-    write_tum_trajectory(out / "traj.txt", np.asarray(ds.timestamps, np.float64)[:len(est)], est)
+    idx, est = run.output_poses()
+    write_tum_trajectory(out / "traj.txt", np.asarray(ds.timestamps, np.float64)[idx], est)
     mapped = run.mapper is not None and (run.stopped_at is None or run.mapper.initialized)
     if run.stopped_at is not None:
         log.warning("stopped before frame %d of %d: wrote %s%s", run.stopped_at, len(ds), out / "traj.txt",
@@ -117,7 +123,7 @@ def run_slam(job: Job, should_stop: StopFn = None) -> dict:
         "seconds": {"loop": t_loop, "total": time.perf_counter() - t_start},
         "torch_threads": torch.get_num_threads(),
     }
-    gt = list(ds.gt_poses)[:len(est)]  # the frames the run got to
+    gt = [ds.gt_poses[int(i)] for i in idx]  # the frames with a pose
     ate_res = _ate_block(est, gt) if run.has_gt else None
     stats["ate"] = ate_res
     if export is not None and export["points"] > 0:
@@ -127,6 +133,7 @@ def run_slam(job: Job, should_stop: StopFn = None) -> dict:
         "poses": poses_mode,
         "frames": len(ds),
         "frames_mapped": len(run.fid_of),
+        "frames_posed": len(idx),
         "stopped_at": run.stopped_at,
         "tracking_loss_events": len(run.loss_events),
         "loop_closures": len(run.frontend.loops) if run.frontend is not None else 0,

@@ -12,7 +12,7 @@ from typing import Optional
 import numpy as np
 
 from fmapping.cancel import Cancelled, StopFn
-from fmapping.geometry import scale_about
+from fmapping.geometry import inv_pose, scale_about
 from fmapping.mapping import Mapper
 from fmapping.session import PoseSession, SlamSession, session_config_from
 from fmapping.slam.config import SlamConfig
@@ -165,25 +165,28 @@ class SlamRun(MapFrontend):
         return None
 
     # -------------------------------------------------------------- monocular front end
-    def _anchor_fn(self):
-        if self.anchor != "gt":
+    def _anchor_pose(self, k: int) -> Optional[np.ndarray]:
+        """Frame ``k``'s anchor pose (``scale_anchor`` "gt"): its GT pose in the run's world frame (frame 0
+        at ``c2w0``), or None. A bootstrap that starts at frame ``k`` takes world frame and scale from it."""
+        g = self.ds.gt_poses[k] if self.anchor == "gt" else None
+        if g is None:
             return None
-        g = self.ds.gt_poses
-
-        def base(k: int):
-            return None if g[k] is None else float(np.linalg.norm(g[k][:3, 3] - g[0][:3, 3]))
-        return base
+        return self.c2w0 @ inv_pose(self.gt0) @ np.asarray(g, np.float64)
 
     def run_mono(self) -> None:
         """The mono front end driven through a :class:`~fmapping.session.SlamSession`, which owns the policy
         (bootstrap buffer, late-anchor hold, bundle-adjusted poses to the mapper)."""
         cfg = self.cfg
         n = len(self.ds)
-        poses = PoseSession(self.camera, cfg.tracker, cfg.mono, session_config_from(cfg), c2w0=self.c2w0,
-                            baseline=self._anchor_fn())
+        # A failed bootstrap starts again at the next frame (the frames before get no pose). With a GT anchor
+        # each start takes its world pose and baseline from its own first frame's anchor pose; without one
+        # the world frame is c2w0 and the scale the bootstrap's unit depth.
+        anchored = self.anchor == "gt"
+        poses = PoseSession(self.camera, cfg.tracker, cfg.mono, session_config_from(cfg),
+                            c2w0=None if anchored else self.c2w0)
         sess = SlamSession(poses, lambda: self._new_mapper(cfg.mapper.init_frames), feed_lost=cfg.feed_lost_frames,
                            use_depth=self.use_depth, on_window=self._on_window)
-        fe = self.frontend = poses.frontend
+        self.frontend = poses.frontend
         self.session = sess
         boot = []
         i = 0
@@ -191,16 +194,21 @@ class SlamRun(MapFrontend):
         while i < n and not poses.initialized:
             f = self.ds[i]
             boot.append(f.index)
+            a = self._anchor_pose(f.index) if anchored else None
+            if a is not None:
+                poses.add_anchor(f.index, a)
             self._apply(sess.push(f))
             i += 1
-            if poses.failed:
-                break
         if not poses.initialized:
-            self.notes.append(f"monocular bootstrap failed after {len(boot)} frames; falling back to the "
-                              "map front end (constant-depth guesses)")
+            self.notes.append(f"monocular bootstrap failed on all {len(boot)} frames ({poses.bootstrap_failures} "
+                              "starts); falling back to the map front end (constant-depth guesses)")
             self.frontend = self.session = None
             self.run_photometric_map()
             return
+        fe = self.frontend = poses.frontend  # a restarted bootstrap made a new front end
+        if poses.bootstrap_failures:
+            self.notes.append(f"monocular bootstrap restarted {poses.bootstrap_failures} times: frames before "
+                              f"{min(poses.bootstrapped)} have no pose")
         boot_ms = (time.perf_counter() - t_boot) * 1000 / max(1, len(boot) - 1)
         for k in boot:
             self.track_ms[k] = boot_ms if k else 0.0
@@ -209,6 +217,9 @@ class SlamRun(MapFrontend):
             self.anchor = "none"
         for i in self._iter(range(i, n), "slam"):
             f = self.ds[i]
+            a = self._anchor_pose(f.index) if anchored and poses.scale_pending else None
+            if a is not None:  # the late anchor
+                poses.add_anchor(f.index, a)
             # map depth for new keyframes; the front end uses it only where it agrees with the landmarks
             extra = self.view.depth_fn if self.view is not None else None
             ups = sess.push(f, extra_depth=extra)
@@ -270,16 +281,18 @@ class SlamRun(MapFrontend):
             if fid in refined:
                 self.est[i] = refined[fid]
 
-    def output_poses(self) -> np.ndarray:
-        """Every frame's pose up to where the run ended (a frame without one keeps the previous pose)."""
+    def output_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """(frame indices, c2w) of every frame from the first with a pose up to where the run ended (a later
+        frame without one keeps the previous pose). Frames before the first pose (a monocular bootstrap
+        that started again further on) are left out."""
         c = self.c2w0[:3, 3]
         n = len(self.ds) if self.stopped_at is None else self.stopped_at
-        out = []
+        first = min((i for i in self.est if i < n), default=n)
+        idx, out = [], []
         last = None
-        for i in range(n):
+        for i in range(first, n):
             p = self.est.get(i, last)
-            if p is None:
-                p = self.c2w0
             last = p
+            idx.append(i)
             out.append(scale_about(p, c, self.scale))
-        return np.stack(out)
+        return np.asarray(idx, np.int64), (np.stack(out) if out else np.zeros((0, 4, 4)))

@@ -13,7 +13,7 @@ from fmapping.geometry import inv_pose, orthonormalize, pose_distance, scale_abo
 from fmapping.tracking.direct_align import select_pixels, to_gray
 from fmapping.tracking.direct_tracker import DirectTracker, TrackerConfig, TrackResult
 from fmapping.tracking.features import (
-    REFERENCE_WIDTH, at_width, detect_corners, klt_track, pnp_ransac, refine_pnp, to_u8,
+    REFERENCE_WIDTH, at_width, detect_corners, klt_track_gain, pnp_ransac, refine_pnp, to_u8,
 )
 from fmapping.tracking.mono.ba_thread import BackgroundBA
 from fmapping.tracking.mono.bootstrap import Bootstrap
@@ -58,6 +58,8 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         self.store = KeyframeStore(camera, self.cfg)  # tracks, keyframes, landmarks, the BA window
         self._buf: list = []  # bootstrap frames: (index, rgb)
         self._last_gray: Optional[np.ndarray] = None
+        self._gain_step = 1.0  # exposure of the last frame over the one before (KLT's prediction)
+        self._gain_kf = 1.0  # exposure of the last frame over the keyframe image ``_kf_gray``
         self._kf_index = -1
         self._lost_run = 0
         self.reinits: list = []
@@ -175,11 +177,14 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
     def _klt(self, gray: np.ndarray) -> None:
         tr = self.store.tracks
         if tr is not None and len(tr):
-            new, ok = klt_track(self._last_gray, gray, tr.uv, self.cfg.klt)
+            # exposure: the last step's gain predicts this one's (klt_track_gain measures and corrects it)
+            new, ok, self._gain_step = klt_track_gain(self._last_gray, gray, tr.uv, self.cfg.klt,
+                                                      gain=self._gain_step)
             kf_gray = getattr(self, "_kf_gray", None)
             if self.cfg.klt_from_keyframe and kf_gray is not None and getattr(tr, "uv_kf", None) is not None:
                 # refine from the keyframe image: positions no longer accumulate frame-to-frame drift
-                ref, ok2 = klt_track(kf_gray, gray, tr.uv_kf, self.cfg.klt, guess=new)
+                ref, ok2, self._gain_kf = klt_track_gain(kf_gray, gray, tr.uv_kf, self.cfg.klt, guess=new,
+                                                         gain=self._gain_kf * self._gain_step)
                 good = ok2 & (np.linalg.norm(ref - new, axis=1) < 2.0)
                 new = np.where(good[:, None], ref, new)
             tr.uv = new.astype(np.float64)
@@ -209,6 +214,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         tr.uv_kf = tr.uv.astype(np.float32).copy()
         self.store.tracks = tr
         self._kf_gray = gray
+        self._gain_kf = 1.0
 
     def _recover(self, rgb: np.ndarray, lost: TrackResult) -> TrackResult:
         """A frame the direct alignment lost: the pose from the tracked landmarks (PnP + RANSAC),
@@ -374,6 +380,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
             tr.add(newc.astype(np.float64), index, self._geo(newc.astype(np.float64)))
         tr.uv_kf = tr.uv.astype(np.float32).copy()
         self._kf_gray = gray
+        self._gain_kf = 1.0
 
     def _dense_agrees(self, index: int, depth_fn, pts: np.ndarray, max_check: int = 300) -> bool:
         """Does ``depth_fn`` (e.g. the map) agree with the landmarks ``pts`` (camera frame of keyframe
