@@ -6,7 +6,8 @@ side by side on the same frames.
 
 For each data set, from ``--starts`` start frames spread over the sequence: Shi-Tomasi corners in the start
 frame, tracked frame to frame over ``--frames`` frames (``fmapping.tracking.features.klt_track``), then the
-distance of each surviving track's end from the epipolar line of its start under the GT relative pose.
+epipolar error of each surviving track (start, end) under the GT relative pose (its Sampson distance,
+``features.sampson_px``).
 That error needs no depth and no estimated pose: it measures the tracks alone. Reported per variant: tracks
 alive at the end (mean per start), median / 75th percentile of the epipolar error (pixels) over all starts,
 and KLT milliseconds per frame (min / median over the starts; this machine's CPU speed swings, compare
@@ -39,16 +40,12 @@ VARIANTS = {"compensated": {}, "plain": {"gain_compensation": False}}
 
 
 def epipolar_px(camera, c2w_a: np.ndarray, c2w_b: np.ndarray, uv_a: np.ndarray, uv_b: np.ndarray) -> np.ndarray:
-    """Distance (pixels) of ``uv_b`` from the epipolar lines of ``uv_a`` under the poses' relative motion."""
+    """Epipolar error (Sampson distance, pixels) of the pixel pairs under the poses' relative motion."""
     from fmapping.geometry import inv_pose
+    from fmapping.tracking.features import sampson_px
 
-    rel = inv_pose(c2w_b) @ c2w_a  # x_b = R x_a + t
-    r, t = rel[:3, :3], rel[:3, 3]
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    k_inv = np.linalg.inv(camera.K)
-    fmat = k_inv.T @ tx @ r @ k_inv
-    lines = np.c_[uv_a, np.ones(len(uv_a))] @ fmat.T
-    return np.abs((np.c_[uv_b, np.ones(len(uv_b))] * lines).sum(1)) / np.hypot(lines[:, 0], lines[:, 1])
+    b_in_a = inv_pose(c2w_a) @ c2w_b
+    return np.abs(sampson_px(camera, b_in_a[:3, :3].T, b_in_a[:3, 3], uv_a, uv_b))
 
 
 def track_run(grey: list, cfg) -> tuple[np.ndarray, np.ndarray, float]:

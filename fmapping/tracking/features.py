@@ -49,9 +49,9 @@ class KltConfig:
     # a small window's mean follows the biased track and reads a gain near 1). While that gain is off by
     # more than ``gain_tol`` and by more than the tracks' own spread of ratios, the points are tracked again
     # (at most ``gain_passes`` times) in the second image scaled back to the first's exposure.
-    # bench/klt_exposure.py: median epipolar error against the GT poses after 5 frames, widened synthetic
-    # room 2 (0.5-1.5 % drift a frame) 1.68 -> 0.40 px, TUM fr1_rpy 1.31 -> 1.17 px, 7-Scenes and the
-    # default rooms unchanged (bench/results/klt_exposure/).
+    # bench/klt_exposure.py: median epipolar (Sampson) error against the GT poses after 5 frames, widened
+    # synthetic room 2 (0.5-1.5 % drift a frame) 1.15 -> 0.28 px, TUM fr1_rpy 0.93 -> 0.83 px, 7-Scenes and
+    # the default rooms unchanged (bench/results/klt_exposure/).
     gain_compensation: bool = True
     gain_tol: float = 0.002
     gain_half_window: int = 30
@@ -98,9 +98,14 @@ def at_width(px: float, width: int) -> float:
     return px * width / REFERENCE_WIDTH
 
 
+def odd_window(half: float, width: int) -> int:
+    """An odd window (pixels) of half size ``half`` at :data:`REFERENCE_WIDTH` for an image ``width`` wide."""
+    return 2 * max(2, int(round(at_width(half, width)))) + 1
+
+
 def klt_window(cfg: KltConfig, width: int) -> int:
     """The LK window (pixels, odd) for an image ``width`` pixels wide (see ``KltConfig.half_window``)."""
-    return 2 * max(2, int(round(at_width(cfg.half_window, width)))) + 1
+    return odd_window(cfg.half_window, width)
 
 
 def _lk(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: KltConfig,
@@ -173,7 +178,7 @@ def klt_track_gain(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: Kl
     p1, ok = _lk(img0, scale_exposure(img1, gain), pts0, cfg, guess)
     if not cfg.gain_compensation:
         return p1, ok, gain
-    win = 2 * max(2, int(round(at_width(cfg.gain_half_window, img0.shape[1])))) + 1
+    win = odd_window(cfg.gain_half_window, img0.shape[1])
     pts0 = np.asarray(pts0, np.float64).reshape(-1, 2)
     for _ in range(cfg.gain_passes):
         m = track_gain(img0, img1, pts0[ok], p1[ok], win)
