@@ -32,7 +32,7 @@ demo: $(STAMP)
 	$(BIN)/fmapping demo --out $(DEMO)
 
 # Hours on 2 CPU cores: every benchmark, then the README table (bench/report.py).
-BENCHES := field_micro transport tracking mapping init_speed slam system faults real long_run export_memory
+BENCHES := field_micro transport tracking mapping init_speed slam system tracker_realtime faults real long_run export_memory
 bench: $(STAMP)
 	for b in $(BENCHES); do $(BIN)/python bench/$$b.py || exit 1; done
 	$(BIN)/python bench/system.py --poses gt --fps 0 10 --out bench/results/system_gt.json

@@ -34,9 +34,10 @@ Every ``--interval`` seconds it records (time series, ``t`` = seconds since the 
 * ``rss_mb``: resident memory of every child process (psutil, else /proc/<pid>/status).
 
 At the end of each run: the final counters, per-frame latencies (tracker pose - publish,
-first mapper pose - publish), ATE of the tracker's poses (quality > 0) and of the mapper's
-trajectory (OUT/traj.txt) against the ground truth (sim3), and the quality of OUT/map.ply
-against the scene's ``gt_visible_cloud.ply`` (``fmapping.metrics.recon_metrics``, 5 cm).
+first mapper pose - publish; the tracker's also frame by frame: ``frames`` in the JSON, dots in the
+plot), ATE of the tracker's poses (quality > 0) and of the mapper's trajectory (OUT/traj.txt)
+against the ground truth (sim3), and the quality of OUT/map.ply against the scene's
+``gt_visible_cloud.ply`` (``fmapping.metrics.recon_metrics``, 5 cm).
 
 The mapper runs the library default config with a shorter closing refinement so that a run
 stays bounded (``--max-seconds`` per rate; on time-out the launcher stops the services and the
@@ -286,7 +287,19 @@ def run_one(fps: float, scene: Path, out: Path, mapper_cfg: dict, max_seconds: f
         wall = time.monotonic() - t0
         mon.close()
     return {"fps": fps, "rc": rc, "wall_seconds": round(wall, 1),
-            "summary": summarize(fps, rows, mon, out, scene, t0, rc, wall), "series": to_columns(rows)}
+            "summary": summarize(fps, rows, mon, out, scene, t0, rc, wall), "series": to_columns(rows),
+            "frames": per_frame(mon, t0)}
+
+
+def per_frame(mon: Monitor, t0: float) -> dict:
+    """Per published frame: when it was published (s since the run started), the latency of the tracker's
+    first answer (s, null without one), whether that answer was usable and a keyframe."""
+    seqs = sorted(mon.t_pub)
+    trk = [mon.tracker.get(s) for s in seqs]
+    return {"seq": seqs, "published_s": [round(mon.t_pub[s] - t0, 4) for s in seqs],
+            "latency_s": [None if v is None else round(v[0] - mon.t_pub[s], 4) for s, v in zip(seqs, trk)],
+            "usable": [v is not None and (v[1] is None or v[1] > 0) for v in trk],
+            "keyframe": [s in mon.keyframes for s in seqs]}
 
 
 def _stats(xs) -> Optional[dict]:
@@ -526,6 +539,10 @@ def plot(results: dict, path: Path) -> None:
         def y(v):
             return np.asarray([np.nan if x is None else x for x in (v or [None] * len(t))], float)
         ax[0, 0].plot(t, y(cols.get("tracker_lag_s")), col, label=lab)
+        fr = run.get("frames") or {}
+        if fr.get("seq"):
+            ax[0, 0].plot(np.asarray(fr["published_s"], float) - t0, y(fr["latency_s"]), col, ls="none",
+                          marker=".", ms=3, label=f"{lab}: each frame's pose latency")
         ax[0, 1].plot(t, y(cols.get("windows_behind")), col, label=lab)
         for name, ls in (("mapper", "-"), ("tracker", "--"), ("view", ":")):
             if name in cols["rss_mb"]:
@@ -534,7 +551,7 @@ def plot(results: dict, path: Path) -> None:
         ax[1, 1].plot(t, y(cols.get("tracker_ack")), col, ls="--", label=f"{lab} tracker ack")
         ax[1, 1].plot(t, y(cols.get("mapper_ack")), col, label=f"{lab} mapper ack")
     per_window = results["settings"]["mapper"].get("new_frames_per_window", 5)
-    titles = ("tracker lag: age of the oldest unanswered frame (s)",
+    titles = ("tracker lag: age of the oldest unanswered frame (s); dots: pose latency per frame",
               f"mapper windows behind (frames waiting / {per_window})",
               "RSS (MB): mapper solid, tracker dashed, view dotted", "frame numbers")
     for a, title in zip(ax.flat, titles):

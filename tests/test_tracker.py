@@ -298,6 +298,33 @@ def test_klt_compensates_an_exposure_change(gain):
     assert abs(measured / gain - 1) < 0.002 and spread < 0.002
 
 
+def test_klt_without_the_backward_pass_keeps_the_forward_tracks_and_drops_fewer():
+    """``fb=False`` (the front end's re-track from its keyframe) runs the same forward pass: the same
+    positions, the known shift recovered, and a superset of the tracks kept; with the backward check a
+    track whose patch changed (an occluded one) is dropped, without it only its 2-px agreement with the
+    chained track (``MonoFrontend._klt``) can drop it."""
+    import cv2
+
+    from fmapping.tracking.features import KltConfig, detect_corners, klt_track_gain
+
+    base = _pale_wall(seed=3)
+    shift = np.array([0.7, 1.1])
+    moved = cv2.warpAffine(base, np.float32([[1, 0, shift[0]], [0, 1, shift[1]]]), base.shape[::-1],
+                           flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    img0 = np.clip(np.round(base), 0, 255).astype(np.uint8)
+    img1 = np.clip(np.round(moved), 0, 255).astype(np.uint8)
+    img1[100:140, 100:160] = 255  # a patch that changed: an occluder
+    cfg = KltConfig()
+    pts = detect_corners(img0, cfg)
+    p_fb, ok_fb, _ = klt_track_gain(img0, img1, pts, cfg)
+    p_no, ok_no, _ = klt_track_gain(img0, img1, pts, cfg, fb=False)
+    np.testing.assert_allclose(p_no, p_fb, atol=1e-4)
+    assert np.all(ok_no[ok_fb]) and ok_no.sum() > ok_fb.sum()
+    clear = ok_fb & ((np.abs(pts[:, 0] - 130) > 45) | (np.abs(pts[:, 1] - 120) > 35))
+    assert clear.sum() > 30
+    assert np.median(np.linalg.norm(p_no[clear] - (pts[clear] + shift), axis=1)) < 0.1
+
+
 def test_two_view_init_recovers_relative_pose():
     from fmapping.tracking.features import two_view_init
 

@@ -41,6 +41,7 @@ class KltConfig:
     half_window: int = 5
     levels: int = 4  # LK pyramid levels
     fb_threshold: float = 1.0  # forward-backward error (pixels) above which a track is dropped
+    max_iters: int = 30  # LK iterations per pyramid level (and a step below 0.01 px stops it)
     border: int = 8
     # Lucas-Kanade assumes the brightness stays constant. A gain change g between the two images moves a
     # track by about (g - 1) * I / |grad I|, towards where the intensities match: on a pale, weakly textured
@@ -109,10 +110,10 @@ def klt_window(cfg: KltConfig, width: int) -> int:
 
 
 def _lk(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: KltConfig,
-        guess: Optional[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Pyramidal Lucas-Kanade from ``img0`` to ``img1`` with the forward-backward check: (pts1, ok)."""
+        guess: Optional[np.ndarray], fb: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Pyramidal Lucas-Kanade from ``img0`` to ``img1`` with the forward-backward check (``fb``): (pts1, ok)."""
     p0 = np.ascontiguousarray(pts0, np.float32).reshape(-1, 1, 2)
-    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, cfg.max_iters, 0.01)
     win = klt_window(cfg, img0.shape[1])
     kw = dict(winSize=(win, win), maxLevel=cfg.levels - 1, criteria=crit)
     if guess is not None:
@@ -120,11 +121,12 @@ def _lk(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: KltConfig,
         p1, st, _ = cv2.calcOpticalFlowPyrLK(img0, img1, p0, p1, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **kw)
     else:
         p1, st, _ = cv2.calcOpticalFlowPyrLK(img0, img1, p0, None, **kw)
-    pb, stb, _ = cv2.calcOpticalFlowPyrLK(img1, img0, p1, None, **kw)
-    fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
+    ok = st.reshape(-1) == 1
+    if fb:
+        pb, stb, _ = cv2.calcOpticalFlowPyrLK(img1, img0, p1, None, **kw)
+        ok &= (stb.reshape(-1) == 1) & (np.linalg.norm((pb - p0).reshape(-1, 2), axis=1) < cfg.fb_threshold)
     p1 = p1.reshape(-1, 2)
     h, w = img1.shape[:2]
-    ok = (st.reshape(-1) == 1) & (stb.reshape(-1) == 1) & (fb < cfg.fb_threshold)
     ok &= (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
     return p1, ok
 
@@ -166,16 +168,17 @@ def scale_exposure(img: np.ndarray, gain: float) -> np.ndarray:
 
 
 def klt_track_gain(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: KltConfig,
-                   guess: Optional[np.ndarray] = None,
-                   gain: float = 1.0) -> tuple[np.ndarray, np.ndarray, float]:
+                   guess: Optional[np.ndarray] = None, gain: float = 1.0,
+                   fb: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
     """:func:`klt_track` with ``img1`` taken at ``gain`` times ``img0``'s exposure (a prediction; 1: the
     same). Returns (pts1, ok, the gain the points were tracked under). With ``cfg.gain_compensation``, a
     gain measured at the tracks more than ``cfg.gain_tol`` (and more than the tracks' spread) off the one
     applied is applied instead and the points tracked again from ``guess`` (``cfg.gain_passes`` times at
-    most): a first pass far off under the wrong exposure is a worse start than the guess."""
+    most): a first pass far off under the wrong exposure is a worse start than the guess. ``fb`` False:
+    no forward-backward check (half the cost; for a caller that checks the tracks otherwise)."""
     if len(pts0) == 0:
         return np.zeros((0, 2), np.float32), np.zeros(0, bool), gain
-    p1, ok = _lk(img0, scale_exposure(img1, gain), pts0, cfg, guess)
+    p1, ok = _lk(img0, scale_exposure(img1, gain), pts0, cfg, guess, fb)
     if not cfg.gain_compensation:
         return p1, ok, gain
     win = odd_window(cfg.gain_half_window, img0.shape[1])
@@ -189,7 +192,7 @@ def klt_track_gain(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: Kl
         if abs(r / gain - 1.0) <= max(cfg.gain_tol, spread):
             return p1, ok, gain
         gain = r
-        p1, ok = _lk(img0, scale_exposure(img1, gain), pts0, cfg, guess)
+        p1, ok = _lk(img0, scale_exposure(img1, gain), pts0, cfg, guess, fb)
     return p1, ok, gain
 
 

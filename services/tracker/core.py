@@ -417,6 +417,7 @@ class TrackerCore(MapFrontend, ServiceCore):
             out += self._publish(ups)
             self._save_state()
             self.counters.set("loop_closures", len(sess.frontend.loops))
+            self.counters.set("keyframes_deferred", sess.frontend.keyframes_deferred)
         self.counters.set("waiting_frames", len(self.waiting))
         return out
 

@@ -46,6 +46,11 @@ class MonoConfig:
     # a keyframe then costs its frame ~5 ms instead of ~150 ms. The merge point depends on timing, so results
     # vary from run to run; off for the offline runs, on in the tracker service at a camera's rate.
     ba_thread: bool = False
+    # ... and with it, while the worker solves a loop closure's bundle adjustment, a frame asking to become a
+    # keyframe stays an ordinary one (tracked against the current keyframe) for up to this many tracked frames in
+    # a row, instead of waiting for the worker on the frame path (MonoFrontend._defer_keyframe; 0: always wait) ...
+    loop_ba_defer_frames: int = 15
+    ba_defer_min_visible: float = 0.5  # ... while the frame still sees this fraction of the keyframe's reference
     # Add depth from ``extra_depth`` (the map) to new keyframes when given ... Off: the map's depth sits a
     # little off the landmarks, which cost accuracy even gated as below, and ungated it derailed tracking
     # (bench/results/mono_tuning.md).
@@ -53,6 +58,11 @@ class MonoConfig:
     dense_max_gap: float = 0.05  # ... and when, at the landmarks' pixels, its median relative gap to the
     dense_min_rendered: float = 0.5  # landmarks' depth is below this, with depth at this fraction of them
     klt_from_keyframe: bool = True  # re-track from the keyframe image (chained positions as the guess): no KLT drift
+    # ... without the forward-backward check: the re-tracked position is kept only within 2 px of the chained one,
+    # which had that check. A quarter of the KLT time (bench/mono_variants.py, KLT ms a frame: five synthetic rooms
+    # 10.7 -> 7.6, TUM fr1_rpy 36.4 -> 25.8, 7-Scenes dev 29.3 -> 26.6), Sim3 ATE 0.47/1.40/0.61/0.67/0.71 ->
+    # 0.62/1.12/0.54/0.67/0.70 cm, TUM 3.39 -> 1.89, 7-Scenes 3.16 -> 2.81 cm (bench/results/realtime_tail/).
+    klt_keyframe_fb: bool = False
     # per-frame pose after direct alignment: "pnp" (reprojection of tracked landmarks) | "none"
     pose_refine: str = "pnp"
     # With pose_refine "pnp" the direct alignment only seeds the PnP (and gates its inliers at pnp_inlier_px), so
@@ -83,6 +93,8 @@ class MonoConfig:
     rolling_shutter: float = 0.0
 
     def validate(self) -> None:
+        if self.loop_ba_defer_frames < 0:
+            raise ValueError(f"mono.loop_ba_defer_frames must be >= 0, got {self.loop_ba_defer_frames}")
         if not (np.isfinite(self.rolling_shutter) and 0.0 <= self.rolling_shutter <= 1.0):
             raise ValueError(f"mono.rolling_shutter is the readout time as a fraction of the frame interval, "
                              f"0 (global shutter) to 1, got {self.rolling_shutter}")

@@ -62,6 +62,8 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         self._gain_kf = 1.0  # exposure of the last frame over the keyframe image ``_kf_gray``
         self._kf_index = -1
         self._lost_run = 0
+        self._deferred = 0  # frames in a row whose keyframe waited for the worker's bundle adjustment
+        self.keyframes_deferred = 0  # such frames in all (MonoConfig.ba_defer_frames)
         self.reinits: list = []
         self.dense_checks: list = []  # per keyframe with extra depth: did it agree with the landmarks?
         self._first_index = 0  # the bootstrap's first frame
@@ -118,6 +120,8 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
                 self.tracker.correct_last(refined)
             res.ms += (time.perf_counter() - t0) * 1000.0
         self.store.rel[index] = (self._kf_index, inv_pose(self.store.kf_pose[self._kf_index]) @ res.c2w)
+        if res.need_keyframe and self._defer_keyframe(res):
+            res.need_keyframe = False
         if res.need_keyframe:
             t0 = time.perf_counter()
             c2w = self._add_keyframe(index, rgb, gray, res.c2w)
@@ -184,7 +188,8 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
             if self.cfg.klt_from_keyframe and kf_gray is not None and getattr(tr, "uv_kf", None) is not None:
                 # refine from the keyframe image: positions no longer accumulate frame-to-frame drift
                 ref, ok2, self._gain_kf = klt_track_gain(kf_gray, gray, tr.uv_kf, self.cfg.klt, guess=new,
-                                                         gain=self._gain_kf * self._gain_step)
+                                                         gain=self._gain_kf * self._gain_step,
+                                                         fb=self.cfg.klt_keyframe_fb)
                 good = ok2 & (np.linalg.norm(ref - new, axis=1) < 2.0)
                 new = np.where(good[:, None], ref, new)
             tr.uv = new.astype(np.float64)
@@ -269,6 +274,24 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         if dt > 0.1 * scale or dr > 5.0:
             return None  # disagrees wildly with the photometric pose: keep that one
         return out
+
+    def _defer_keyframe(self, res: TrackResult) -> bool:
+        """Should this frame's keyframe wait (``ba_thread``)? Every keyframe first merges the bundle
+        adjustment in flight (the store changes), waiting for it on the frame path if need be. A loop
+        closure's BA covers tens of keyframes and takes the worker 0.3-0.6 s at 320x240 on 2 cores, 10-20
+        frames of a 30-fps camera: while one is in flight, the frame stays an ordinary one, tracked
+        against the current reference, for up to ``MonoConfig.loop_ba_defer_frames`` frames in a row while
+        it still sees ``ba_defer_min_visible`` of the reference; the next frame asks again. A keyframe's own
+        BA is waited for (deferring those too cost accuracy: bench/results/realtime_tail/). A re-localised
+        frame is never deferred."""
+        if (self._bg is None or not self._bg.busy or self._loop_ba is None or res.relocalised
+                or self._deferred >= self.cfg.loop_ba_defer_frames
+                or res.visible_ratio < self.cfg.ba_defer_min_visible):
+            self._deferred = 0
+            return False
+        self._deferred += 1
+        self.keyframes_deferred += 1
+        return True
 
     def _add_keyframe(self, index: int, rgb: np.ndarray, gray: np.ndarray, c2w: np.ndarray) -> np.ndarray:
         """Frame ``index`` becomes a keyframe (:meth:`KeyframeStore.add_keyframe`); the window is
