@@ -14,8 +14,9 @@ tracker's first answer for it (as ``bench/system.py`` measures between processes
 the other services' CPU). "once tracking": frames that arrived after the first pose came out (the bootstrap
 and the late anchor hold the first ~15 frames' poses by design).
 
-A variant is ``name:key=value;key=value`` of ``MonoConfig`` fields (``klt.*`` / ``loop.*`` of its parts;
-values are Python literals). The variants run in turn within each round, so that the CPU's swings fall on all.
+A variant is ``name:key=value;key=value`` as in ``bench/mono_variants.py``: ``MonoConfig`` fields (``klt.*`` /
+``loop.*`` of its parts), ``tracker.*`` of the ``TrackerConfig`` (values are Python literals). The variants
+run in turn within each round, so that the CPU's swings fall on all.
 Per run: latency median / p95 / max once tracking, per-message wall time of ``apply`` (median / p95 / max),
 frames tracked / answered untracked, keyframes deferred, the Sim3 ATE of the final poses (the bundle
 adjustment's timing differs from run to run, so the poses do too) and the slowest frames. Writes ``--out``.
@@ -23,8 +24,6 @@ adjustment's timing differs from run to run, so the poses do too) and the slowes
 from __future__ import annotations
 
 import argparse
-import ast
-import dataclasses
 import json
 import multiprocessing as mp
 import platform
@@ -51,24 +50,6 @@ def spin(stop) -> None:
             a = torch.tanh(a @ a * 0.01)
 
 
-def mono_config(spec: str):
-    """MonoConfig with the overrides of ``spec`` (``key=value;...``, dotted keys into its parts)."""
-    from fmapping.tracking.mono import MonoConfig
-
-    def put(obj, path: list, value):
-        if not hasattr(obj, path[0]):
-            raise SystemExit(f"no setting {path[0]!r} in {type(obj).__name__}")
-        if len(path) == 1:
-            return dataclasses.replace(obj, **{path[0]: value})
-        return dataclasses.replace(obj, **{path[0]: put(getattr(obj, path[0]), path[1:], value)})
-
-    cfg = MonoConfig()
-    for kv in filter(None, spec.split(";")):
-        key, _, val = kv.partition("=")
-        cfg = put(cfg, key.strip().split("."), ast.literal_eval(val.strip()))
-    return cfg
-
-
 def encode_stream(ds) -> tuple[list[bytes], list[bytes]]:
     from fmapping import protocol as P
 
@@ -78,7 +59,7 @@ def encode_stream(ds) -> tuple[list[bytes], list[bytes]]:
     return frames, gts
 
 
-def run_once(frames: list, gts: list, gt_c2w: list, mono, fps: float, tail_s: float = 3.0) -> dict:
+def run_once(frames: list, gts: list, gt_c2w: list, mono, trk, fps: float, tail_s: float = 3.0) -> dict:
     """One playback at ``fps`` through a fresh tracker core (see the module docstring)."""
     from fmapping import protocol as P
     from fmapping.metrics import ate
@@ -87,7 +68,7 @@ def run_once(frames: list, gts: list, gt_c2w: list, mono, fps: float, tail_s: fl
 
     counters = Counters()
     inbox = Inbox({"end": 8, "poses": 8192, "frames": 64}, counters, thin=("frames",))  # the service's bounds
-    core = TrackerCore(None, TrackerServiceOptions(ba_thread=True), counters=counters, mono_cfg=mono)
+    core = TrackerCore(trk, TrackerServiceOptions(ba_thread=True), counters=counters, mono_cfg=mono)
     core.backlog = lambda: inbox.size("frames")
     core.stream_idle = lambda: inbox.idle("frames")
     t_in: dict = {}
@@ -155,7 +136,7 @@ def main(argv=None) -> int:
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--load", type=int, default=1, help="busy one-thread processes beside the tracker (the mapper)")
     ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--variants", nargs="*", default=[], help="name:key=value;... (MonoConfig; see the docstring)")
+    ap.add_argument("--variants", nargs="*", default=[], help="name:key=value;... (see the docstring)")
     ap.add_argument("--work", default="/tmp/fmapping_bench_tracker_realtime")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "tracker_realtime.json"))
     a = ap.parse_args(argv)
@@ -164,6 +145,7 @@ def main(argv=None) -> int:
 
     from fmapping.datasets import open_dataset
     from fmapping.runtime import limit_blas_threads
+    from mono_variants import make_configs
     from report import cpu_model
 
     torch.set_num_threads(1)  # as the tracker service
@@ -180,7 +162,7 @@ def main(argv=None) -> int:
     frames, gts = encode_stream(ds)
     gt_c2w = [np.asarray(ds[k].c2w, np.float64) for k in range(len(ds))]
     variants = [("base", "")] + [tuple(v.split(":", 1)) if ":" in v else (v, "") for v in a.variants]
-    configs = {name: mono_config(spec) for name, spec in variants}
+    configs = {name: make_configs(spec) for name, spec in variants}  # (MonoConfig, TrackerConfig)
     stop = mp.Event()
     load = [mp.Process(target=spin, args=(stop,), daemon=True) for _ in range(a.load)]
     for p in load:
@@ -190,7 +172,7 @@ def main(argv=None) -> int:
         time.sleep(1.0)
         for r in range(a.rounds):
             for name, _ in variants:
-                res = run_once(frames, gts, gt_c2w, configs[name], a.fps)
+                res = run_once(frames, gts, gt_c2w, *configs[name], a.fps)
                 runs[name].append(res)
                 lat, ms = res["latency_s_once_tracking"], res["apply_ms"]
                 print(f"round {r + 1} {name:12s} latency median / p95 / max {lat['median']:.3f} / {lat['p95']:.3f} / "

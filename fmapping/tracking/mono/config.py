@@ -93,8 +93,9 @@ class MonoConfig:
     rolling_shutter: float = 0.0
 
     def validate(self) -> None:
-        if self.loop_ba_defer_frames < 0:
-            raise ValueError(f"mono.loop_ba_defer_frames must be >= 0, got {self.loop_ba_defer_frames}")
+        if self.loop_ba_defer_frames < 0 or not 0.0 <= self.ba_defer_min_visible <= 1.0:
+            raise ValueError(f"mono.loop_ba_defer_frames must be >= 0 and mono.ba_defer_min_visible in [0, 1], got "
+                             f"{self.loop_ba_defer_frames} and {self.ba_defer_min_visible}")
         if not (np.isfinite(self.rolling_shutter) and 0.0 <= self.rolling_shutter <= 1.0):
             raise ValueError(f"mono.rolling_shutter is the readout time as a fraction of the frame interval, "
                              f"0 (global shutter) to 1, got {self.rolling_shutter}")

@@ -62,8 +62,8 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         self._gain_kf = 1.0  # exposure of the last frame over the keyframe image ``_kf_gray``
         self._kf_index = -1
         self._lost_run = 0
-        self._deferred = 0  # frames in a row whose keyframe waited for the worker's bundle adjustment
-        self.keyframes_deferred = 0  # such frames in all (MonoConfig.ba_defer_frames)
+        self._deferred = 0  # frames in a row whose keyframe was put off (a loop's BA in the worker)
+        self.keyframes_deferred = 0  # such frames in all (MonoConfig.loop_ba_defer_frames)
         self.reinits: list = []
         self.dense_checks: list = []  # per keyframe with extra depth: did it agree with the landmarks?
         self._first_index = 0  # the bootstrap's first frame
