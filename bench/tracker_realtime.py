@@ -39,10 +39,15 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 
-def spin(stop) -> None:
-    """A busy core: a one-thread torch loop (the mapper's kind of load) until ``stop`` is set."""
+def spin(stop, nice: int = 0) -> None:
+    """A busy core: a one-thread torch loop (the mapper's kind of load) at CPU priority ``nice`` until ``stop``
+    is set."""
+    import os
+
     import torch
 
+    if nice > 0:
+        os.nice(nice)
     torch.set_num_threads(1)
     a = torch.randn(256, 256)
     while not stop.is_set():
@@ -108,20 +113,22 @@ def run_once(frames: list, gts: list, gt_c2w: list, mono, trk, fps: float, tail_
         if channel == "end":
             break
     th.join()
+    fe = core.session.frontend
+    bg = getattr(fe, "_bg", None)
     core.close()
     first = min(t_out.values())
     steady = np.array([t_out[k] - t_in[k] for k in t_out if k in t_in and t_in[k] > first])
     ms = np.array([m for _, m in applies])
     ks = sorted(final)
     err = ate(np.stack([final[k] for k in ks]), np.stack([gt_c2w[k] for k in ks]))
-    fe = core.session.frontend
     return {
         "latency_s_once_tracking": {"median": float(np.median(steady)), "p95": float(np.percentile(steady, 95)),
                                     "max": float(steady.max()), "n": int(len(steady))},
         "apply_ms": {"median": float(np.median(ms)), "p95": float(np.percentile(ms, 95)), "max": float(ms.max())},
         "tracked": int(counters.get("frames_tracked")), "untracked": int(counters.get("frames_skipped")),
         "lost": int(counters.get("frames_lost")), "keyframes_deferred": int(getattr(fe, "keyframes_deferred", 0)),
-        "loops": len(fe.loops), "ate_sim3_cm": round(100 * err["rmse_m"], 3), "posed": len(ks),
+        "loops": len(fe.loops),
+        "ba_submitted": None if bg is None else bg.submitted, "ba_waited": None if bg is None else bg.waited, "ate_sim3_cm": round(100 * err["rmse_m"], 3), "posed": len(ks),
         "slowest_frames": [[int(s), round(m, 1)] for s, m in sorted(applies, key=lambda x: -x[1])[:8]],
         "latency_s_per_frame": {int(k): round(t_out[k] - t_in[k], 4) for k in sorted(t_out) if k in t_in},
     }
@@ -135,6 +142,8 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default="320x240")
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--load", type=int, default=1, help="busy one-thread processes beside the tracker (the mapper)")
+    ap.add_argument("--load-nice", type=int, default=0,
+                    help="their nice increment (fmapping up runs the mapper at 5: services.launcher.supervise.NICE)")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--variants", nargs="*", default=[], help="name:key=value;... (see the docstring)")
     ap.add_argument("--work", default="/tmp/fmapping_bench_tracker_realtime")
@@ -164,7 +173,7 @@ def main(argv=None) -> int:
     variants = [("base", "")] + [tuple(v.split(":", 1)) if ":" in v else (v, "") for v in a.variants]
     configs = {name: make_configs(spec) for name, spec in variants}  # (MonoConfig, TrackerConfig)
     stop = mp.Event()
-    load = [mp.Process(target=spin, args=(stop,), daemon=True) for _ in range(a.load)]
+    load = [mp.Process(target=spin, args=(stop, a.load_nice), daemon=True) for _ in range(a.load)]
     for p in load:
         p.start()
     runs: dict = {name: [] for name, _ in variants}
@@ -178,7 +187,7 @@ def main(argv=None) -> int:
                 print(f"round {r + 1} {name:12s} latency median / p95 / max {lat['median']:.3f} / {lat['p95']:.3f} / "
                       f"{lat['max']:.3f} s  apply ms median / p95 {ms['median']:.1f} / {ms['p95']:.1f}  tracked "
                       f"{res['tracked']} untracked {res['untracked']} lost {res['lost']} deferred "
-                      f"{res['keyframes_deferred']}  Sim3 ATE {res['ate_sim3_cm']:.2f} cm  slowest "
+                      f"{res['keyframes_deferred']} BAs {res['ba_submitted']} waited for {res['ba_waited']}  Sim3 ATE {res['ate_sim3_cm']:.2f} cm  slowest "
                       f"{res['slowest_frames'][:3]}", flush=True)
     finally:
         stop.set()

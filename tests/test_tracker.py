@@ -325,6 +325,38 @@ def test_klt_without_the_backward_pass_keeps_the_forward_tracks_and_drops_fewer(
     assert np.median(np.linalg.norm(p_no[clear] - (pts[clear] + shift), axis=1)) < 0.1
 
 
+def test_klt_in_halved_images_recovers_a_known_shift_and_so_does_the_full_size_refinement():
+    """``KltConfig.max_width``: a 640-px pair tracked in the images halved once (``cv2.pyrDown``), positions
+    scaled back, recovers a known shift; so does :func:`fine_klt_config`'s full-size pass from those positions (11-px window, two
+    levels) and keeps most tracks; 320-px images are not halved."""
+    import cv2
+
+    from fmapping.tracking.features import (KltConfig, detect_corners, fine_klt_config, klt_halvings, klt_track_gain,
+                                            klt_window)
+
+    base = _pale_wall(shape=(480, 640), seed=5)
+    shift = np.array([2.3, -1.6])
+    moved = cv2.warpAffine(base, np.float32([[1, 0, shift[0]], [0, 1, shift[1]]]), base.shape[::-1],
+                           flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    img0, img1 = (np.clip(np.round(x), 0, 255).astype(np.uint8) for x in (base, moved))
+    cfg = KltConfig(max_width=320)
+    assert klt_halvings(cfg, 640) == 1 and klt_halvings(cfg, 320) == 0 and klt_halvings(KltConfig(), 640) == 0
+    fine = fine_klt_config(cfg, 640)
+    assert fine.levels == 2 and fine.max_width == 0 and klt_window(fine, 640) == klt_window(KltConfig(), 320) == 11
+    assert fine_klt_config(cfg, 320) is cfg
+    pts = detect_corners(img0, KltConfig())
+    inner = (pts[:, 0] > 20) & (pts[:, 0] < 620) & (pts[:, 1] > 20) & (pts[:, 1] < 460)
+    pts = pts[inner]
+    coarse, ok, _ = klt_track_gain(img0, img1, pts, cfg)
+    assert ok.mean() > 0.8
+    err_coarse = np.linalg.norm(coarse[ok] - (pts[ok] + shift), axis=1)
+    assert np.median(err_coarse) < 0.1
+    refined, ok2, _ = klt_track_gain(img0, img1, pts, fine, guess=coarse, fb=False)
+    both = ok & ok2
+    err_fine = np.linalg.norm(refined[both] - (pts[both] + shift), axis=1)
+    assert both.sum() > 0.8 * ok.sum() and np.median(err_fine) < 0.1
+
+
 def test_two_view_init_recovers_relative_pose():
     from fmapping.tracking.features import two_view_init
 
@@ -435,6 +467,45 @@ def test_reprojection_jacobians_match_finite_differences():
         d[k] = eps
         num = (_project(cam, t, x + d)[0] - _project(cam, t, x - d)[0]) / (2 * eps)
         np.testing.assert_allclose(jx[:, :, k], num, rtol=1e-6, atol=1e-6)
+
+
+def test_reprojection_jacobians_match_the_chain_rule_products():
+    """The entry-by-entry Jacobians against the obvious form, ``dpi @ [I | -hat(y)]`` and ``dpi @ R``, built as
+    stacked matrix products at many random poses and points."""
+    from fmapping.tracking.ba import reprojection_jacobians
+
+    cam = PinholeCamera(300.0, 290.0, 161.0, 118.0, 320, 240)
+    rng = np.random.default_rng(13)
+    n = 200
+    t = np.stack([se3_exp_np(rng.normal(size=6) * 0.3) for _ in range(n)])
+    x = rng.normal(size=(n, 3)) * [1.0, 1.0, 0.5] + [0.0, 0.0, 3.0]
+    y = np.einsum("nij,nj->ni", t[:, :3, :3], x) + t[:, :3, 3]
+    dpi = np.zeros((n, 2, 3))
+    dpi[:, 0, 0] = cam.fx / y[:, 2]
+    dpi[:, 0, 2] = -cam.fx * y[:, 0] / y[:, 2] ** 2
+    dpi[:, 1, 1] = cam.fy / y[:, 2]
+    dpi[:, 1, 2] = -cam.fy * y[:, 1] / y[:, 2] ** 2
+    minus_hat = np.zeros((n, 3, 3))
+    minus_hat[:, 0, 1], minus_hat[:, 0, 2], minus_hat[:, 1, 2] = y[:, 2], -y[:, 1], y[:, 0]
+    minus_hat[:, 1, 0], minus_hat[:, 2, 0], minus_hat[:, 2, 1] = -y[:, 2], y[:, 1], -y[:, 0]
+    jp, jx = reprojection_jacobians(cam, t, x)
+    np.testing.assert_allclose(jp, dpi @ np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)), minus_hat], 2),
+                               rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(jx, dpi @ t[:, :3, :3], rtol=1e-12, atol=1e-9)
+
+
+def test_inverse_of_symmetric_3x3_blocks_matches_numpy_and_refuses_singular_ones():
+    from fmapping.tracking.ba import inv_sym3
+
+    rng = np.random.default_rng(12)
+    a = rng.normal(size=(500, 3, 4))
+    h = a @ np.swapaxes(a, 1, 2) + 1e-3 * np.eye(3)  # symmetric positive definite, some badly conditioned
+    inv = inv_sym3(h)
+    np.testing.assert_allclose(inv, np.linalg.inv(h), rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(inv @ h, np.broadcast_to(np.eye(3), h.shape), atol=1e-8)
+    h[7] = np.outer([1.0, 2.0, 3.0], [1.0, 2.0, 3.0])  # rank 1
+    with pytest.raises(np.linalg.LinAlgError):
+        inv_sym3(h)
 
 
 @pytest.mark.parametrize("path", ["dense", "pairs", "repeated"])

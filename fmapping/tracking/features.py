@@ -19,6 +19,8 @@ Conventions: pixels (u, v) with integer centres, poses camera-to-world 4x4
 """
 from __future__ import annotations
 
+import dataclasses
+
 import math
 from dataclasses import dataclass
 from typing import Optional
@@ -57,6 +59,14 @@ class KltConfig:
     gain_tol: float = 0.002
     gain_half_window: int = 30
     gain_passes: int = 2
+    # Track in the images halved until they are at most this wide (0: at full size), positions scaled back; the
+    # window (``half_window`` at 320 px) then covers the same view angle with a quarter of the pixels per halving,
+    # and the front end's re-track from the keyframe refines at full size (fine_klt_config). Off: on 640x480 clips
+    # (bench/mono_variants.py, max_width 320) KLT took 9-10 instead of 20-26 ms a frame and a frame's median
+    # 19-22 instead of 30-41 ms, but the Sim3 ATE went TUM fr1_rpy 1.89 -> 1.93 cm, 7-Scenes dev 2.68 -> 3.37,
+    # 7-Scenes long 4.58 -> 5.22 (79 keyframes instead of 55); without the full-size pass 2.72 / 3.03 cm.
+    # Images 320 px wide (the synthetic rooms) are never halved.
+    max_width: int = 0
 
 
 def to_u8(rgb: np.ndarray) -> np.ndarray:
@@ -178,6 +188,9 @@ def klt_track_gain(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: Kl
     no forward-backward check (half the cost; for a caller that checks the tracks otherwise)."""
     if len(pts0) == 0:
         return np.zeros((0, 2), np.float32), np.zeros(0, bool), gain
+    halvings = klt_halvings(cfg, img0.shape[1])
+    if halvings:
+        return _klt_halved(img0, img1, pts0, cfg, guess, gain, fb, halvings)
     p1, ok = _lk(img0, scale_exposure(img1, gain), pts0, cfg, guess, fb)
     if not cfg.gain_compensation:
         return p1, ok, gain
@@ -194,6 +207,36 @@ def klt_track_gain(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: Kl
         gain = r
         p1, ok = _lk(img0, scale_exposure(img1, gain), pts0, cfg, guess, fb)
     return p1, ok, gain
+
+
+def klt_halvings(cfg: KltConfig, width: int) -> int:
+    """How often an image ``width`` pixels wide is halved to track in it (``cfg.max_width``)."""
+    k = 0
+    while cfg.max_width > 0 and (width >> k) > cfg.max_width and (width >> k) >= 64:
+        k += 1
+    return k
+
+
+def fine_klt_config(cfg: KltConfig, width: int, levels: int = 2) -> KltConfig:
+    """A config that tracks at full size with the window ``cfg`` has in the halved image
+    (:func:`klt_halvings`) and ``levels`` pyramid levels: a full-resolution refinement of positions known to
+    within a pixel or two of the halved image. ``cfg`` itself when images of ``width`` are not halved."""
+    k = klt_halvings(cfg, width)
+    if k == 0:
+        return cfg
+    return dataclasses.replace(cfg, max_width=0, levels=levels, half_window=cfg.half_window / 2 ** k)
+
+
+def _klt_halved(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: KltConfig, guess: Optional[np.ndarray],
+                gain: float, fb: bool, halvings: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """:func:`klt_track_gain` in both images halved ``halvings`` times (``cv2.pyrDown``: pixel ``i`` of the
+    halved image is centred on ``2 i + 0.5`` of the full one), positions scaled back to the full size."""
+    s = float(2 ** halvings)
+    for _ in range(halvings):
+        img0, img1 = cv2.pyrDown(img0), cv2.pyrDown(img1)
+    down = lambda p: None if p is None else ((np.asarray(p, np.float64).reshape(-1, 2) + 0.5) / s - 0.5)  # noqa: E731
+    p1, ok, gain = klt_track_gain(img0, img1, down(pts0), dataclasses.replace(cfg, max_width=0), down(guess), gain, fb)
+    return ((np.asarray(p1, np.float64) + 0.5) * s - 0.5).astype(np.float32), ok, gain
 
 
 def klt_track(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: KltConfig,

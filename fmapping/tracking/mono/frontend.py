@@ -13,7 +13,7 @@ from fmapping.geometry import inv_pose, orthonormalize, pose_distance, scale_abo
 from fmapping.tracking.direct_align import select_pixels, to_gray
 from fmapping.tracking.direct_tracker import DirectTracker, TrackerConfig, TrackResult
 from fmapping.tracking.features import (
-    REFERENCE_WIDTH, at_width, detect_corners, klt_track_gain, pnp_ransac, refine_pnp, to_u8,
+    REFERENCE_WIDTH, at_width, detect_corners, fine_klt_config, klt_track_gain, pnp_ransac, refine_pnp, to_u8,
 )
 from fmapping.tracking.mono.ba_thread import BackgroundBA
 from fmapping.tracking.mono.bootstrap import Bootstrap
@@ -187,7 +187,9 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
             kf_gray = getattr(self, "_kf_gray", None)
             if self.cfg.klt_from_keyframe and kf_gray is not None and getattr(tr, "uv_kf", None) is not None:
                 # refine from the keyframe image: positions no longer accumulate frame-to-frame drift
-                ref, ok2, self._gain_kf = klt_track_gain(kf_gray, gray, tr.uv_kf, self.cfg.klt, guess=new,
+                # (with klt.max_width the chained pass ran in halved images: this one refines at full size)
+                ref, ok2, self._gain_kf = klt_track_gain(kf_gray, gray, tr.uv_kf,
+                                                         fine_klt_config(self.cfg.klt, gray.shape[1]), guess=new,
                                                          gain=self._gain_kf * self._gain_step,
                                                          fb=self.cfg.klt_keyframe_fb)
                 good = ok2 & (np.linalg.norm(ref - new, axis=1) < 2.0)
