@@ -128,7 +128,8 @@ def run_once(frames: list, gts: list, gt_c2w: list, mono, trk, fps: float, tail_
         "tracked": int(counters.get("frames_tracked")), "untracked": int(counters.get("frames_skipped")),
         "lost": int(counters.get("frames_lost")), "keyframes_deferred": int(getattr(fe, "keyframes_deferred", 0)),
         "loops": len(fe.loops),
-        "ba_submitted": None if bg is None else bg.submitted, "ba_waited": None if bg is None else bg.waited, "ate_sim3_cm": round(100 * err["rmse_m"], 3), "posed": len(ks),
+        "ba_submitted": None if bg is None else bg.submitted, "ba_waited": None if bg is None else bg.waited,
+        "ate_sim3_cm": round(100 * err["rmse_m"], 3), "posed": len(ks),
         "slowest_frames": [[int(s), round(m, 1)] for s, m in sorted(applies, key=lambda x: -x[1])[:8]],
         "latency_s_per_frame": {int(k): round(t_out[k] - t_in[k], 4) for k in sorted(t_out) if k in t_in},
     }
@@ -187,7 +188,8 @@ def main(argv=None) -> int:
                 print(f"round {r + 1} {name:12s} latency median / p95 / max {lat['median']:.3f} / {lat['p95']:.3f} / "
                       f"{lat['max']:.3f} s  apply ms median / p95 {ms['median']:.1f} / {ms['p95']:.1f}  tracked "
                       f"{res['tracked']} untracked {res['untracked']} lost {res['lost']} deferred "
-                      f"{res['keyframes_deferred']} BAs {res['ba_submitted']} waited for {res['ba_waited']}  Sim3 ATE {res['ate_sim3_cm']:.2f} cm  slowest "
+                      f"{res['keyframes_deferred']} BAs {res['ba_submitted']} waited for {res['ba_waited']}  Sim3 ATE "
+                      f"{res['ate_sim3_cm']:.2f} cm  slowest "
                       f"{res['slowest_frames'][:3]}", flush=True)
     finally:
         stop.set()

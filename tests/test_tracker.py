@@ -327,8 +327,8 @@ def test_klt_without_the_backward_pass_keeps_the_forward_tracks_and_drops_fewer(
 
 def test_klt_in_halved_images_recovers_a_known_shift_and_so_does_the_full_size_refinement():
     """``KltConfig.max_width``: a 640-px pair tracked in the images halved once (``cv2.pyrDown``), positions
-    scaled back, recovers a known shift; so does :func:`fine_klt_config`'s full-size pass from those positions (11-px window, two
-    levels) and keeps most tracks; 320-px images are not halved."""
+    scaled back, recovers a known shift; so does :func:`fine_klt_config`'s full-size pass from those
+    positions (11-px window, two levels), and it keeps most tracks; 320-px images are not halved."""
     import cv2
 
     from fmapping.tracking.features import (KltConfig, detect_corners, fine_klt_config, klt_halvings, klt_track_gain,
