@@ -508,17 +508,19 @@ def test_inverse_of_symmetric_3x3_blocks_matches_numpy_and_refuses_singular_ones
         inv_sym3(h)
 
 
-@pytest.mark.parametrize("path", ["dense", "pairs", "repeated"])
+@pytest.mark.parametrize("path", ["dense", "pairs", "pairs-chunked", "repeated"])
 def test_schur_step_matches_dense_normal_equations(path, monkeypatch):
     """The BA's Schur-complement step against the full (poses + points) damped normal equations
     built from a dense Jacobian and solved directly; by both ways of forming ``Hpx Hxx^-1 Hxp``
-    (one dense product; pairs of observations of a point, which large problems take), and with
-    observations repeated."""
+    (one dense product; pairs of observations of a point, which large problems take, also summed a
+    few pairs at a time), and with observations repeated."""
     import fmapping.tracking.ba as ba
     from fmapping.tracking.ba import damped_step, normal_equations, reprojection_jacobians
 
-    if path == "pairs":
+    if path.startswith("pairs"):
         monkeypatch.setattr(ba, "DENSE_SCHUR_MAX", 0)
+    if path == "pairs-chunked":
+        monkeypatch.setattr(ba, "PAIRS_CHUNK", 7)
 
     cam = PinholeCamera(250.0, 240.0, 160.0, 120.0, 320, 240)
     rng = np.random.default_rng(11)

@@ -154,6 +154,7 @@ def normal_equations(jp: np.ndarray, jx: np.ndarray, r: np.ndarray, w: np.ndarra
 
 
 DENSE_SCHUR_MAX = 50_000  # free poses x points up to which Hpx Hxx^-1 Hxp is one dense product
+PAIRS_CHUNK = 16_384  # pairs of observations summed at a time by the other way (bounds its temporaries)
 
 
 def _hpx_hinv_hxp(ne: NormalEquations, u: np.ndarray) -> np.ndarray:
@@ -166,7 +167,10 @@ def _hpx_hinv_hxp(ne: NormalEquations, u: np.ndarray) -> np.ndarray:
     if nf * m <= DENSE_SCHUR_MAX:
         return _scatter(ne.at, u, nf, m) @ ne.hpx_dense.T
     a, b = same_point_pairs(ne.point_of)
-    blocks = block_sum(ne.pose_of[a] * nf + ne.pose_of[b], u[a] @ _t(ne.hpx[b]), nf * nf)
+    blocks = np.zeros((nf * nf, 6, 6))
+    for s in range(0, len(a), PAIRS_CHUNK):  # in chunks: the temporaries of all pairs at once took ~60 MB
+        aa, bb = a[s:s + PAIRS_CHUNK], b[s:s + PAIRS_CHUNK]
+        blocks += block_sum(ne.pose_of[aa] * nf + ne.pose_of[bb], u[aa] @ _t(ne.hpx[bb]), nf * nf)
     return blocks.reshape(nf, nf, 6, 6).transpose(0, 2, 1, 3).reshape(6 * nf, 6 * nf)
 
 
