@@ -341,6 +341,7 @@ def test_klt_in_halved_images_recovers_a_known_shift_and_so_does_the_full_size_r
     img0, img1 = (np.clip(np.round(x), 0, 255).astype(np.uint8) for x in (base, moved))
     cfg = KltConfig(max_width=320)
     assert klt_halvings(cfg, 640) == 1 and klt_halvings(cfg, 320) == 0 and klt_halvings(KltConfig(), 640) == 0
+    assert klt_halvings(KltConfig(max_width=10), 640) == 3  # 80 px: never below 64
     fine = fine_klt_config(cfg, 640)
     assert fine.levels == 2 and fine.max_width == 0 and klt_window(fine, 640) == klt_window(KltConfig(), 320) == 11
     assert fine_klt_config(cfg, 320) is cfg

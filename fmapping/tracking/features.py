@@ -19,10 +19,8 @@ Conventions: pixels (u, v) with integer centres, poses camera-to-world 4x4
 """
 from __future__ import annotations
 
-import dataclasses
-
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional
 
 import cv2
@@ -210,9 +208,9 @@ def klt_track_gain(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: Kl
 
 
 def klt_halvings(cfg: KltConfig, width: int) -> int:
-    """How often an image ``width`` pixels wide is halved to track in it (``cfg.max_width``)."""
+    """How often an image ``width`` pixels wide is halved to track in it (``cfg.max_width``; never below 64 px)."""
     k = 0
-    while cfg.max_width > 0 and (width >> k) > cfg.max_width and (width >> k) >= 64:
+    while cfg.max_width > 0 and (width >> k) > cfg.max_width and (width >> (k + 1)) >= 64:
         k += 1
     return k
 
@@ -224,7 +222,7 @@ def fine_klt_config(cfg: KltConfig, width: int, levels: int = 2) -> KltConfig:
     k = klt_halvings(cfg, width)
     if k == 0:
         return cfg
-    return dataclasses.replace(cfg, max_width=0, levels=levels, half_window=cfg.half_window / 2 ** k)
+    return replace(cfg, max_width=0, levels=levels, half_window=cfg.half_window / 2 ** k)
 
 
 def _klt_halved(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: KltConfig, guess: Optional[np.ndarray],
@@ -234,8 +232,11 @@ def _klt_halved(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: KltCo
     s = float(2 ** halvings)
     for _ in range(halvings):
         img0, img1 = cv2.pyrDown(img0), cv2.pyrDown(img1)
-    down = lambda p: None if p is None else ((np.asarray(p, np.float64).reshape(-1, 2) + 0.5) / s - 0.5)  # noqa: E731
-    p1, ok, gain = klt_track_gain(img0, img1, down(pts0), dataclasses.replace(cfg, max_width=0), down(guess), gain, fb)
+
+    def down(p):
+        return None if p is None else (np.asarray(p, np.float64).reshape(-1, 2) + 0.5) / s - 0.5
+
+    p1, ok, gain = klt_track_gain(img0, img1, down(pts0), replace(cfg, max_width=0), down(guess), gain, fb)
     return ((np.asarray(p1, np.float64) + 0.5) * s - 0.5).astype(np.float32), ok, gain
 
 
