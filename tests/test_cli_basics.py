@@ -342,6 +342,30 @@ def test_up_takes_a_live_camera_with_its_intrinsics_and_passes_them_to_play(tmp_
                                "camera_source": "500,500,320,240"}
 
 
+def test_up_sends_the_datasets_depth_only_to_runs_that_may_use_it(scene, tmp_path, monkeypatch):
+    """The synthetic scene has depth. An RGB-only run's player sends colour alone (``--no-depth``); a mapper
+    with ``use_depth`` or an external pose producer (kiss-icp reads depth) gets the depth."""
+    import yaml
+
+    from services.cli import main
+
+    assert (scene / "depth").is_dir()
+    started = fake_up(monkeypatch)
+    base = ["up", "--data", str(scene), "--view", "save", "--insecure"]
+
+    def play_argv(*extra) -> list:
+        started.clear()
+        assert main(base + ["--out", str(tmp_path / f"up{len(list(tmp_path.iterdir()))}"), *extra]) == 0
+        return started["play"]
+
+    assert "--no-depth" in play_argv("--poses", "tracker")
+    assert "--no-depth" in play_argv("--poses", "gt")
+    cfg = tmp_path.parent / f"{tmp_path.name}_depth.yaml"
+    cfg.write_text(yaml.safe_dump({"mapper": {"use_depth": True}}))
+    assert "--no-depth" not in play_argv("--poses", "gt", "--config", str(cfg))
+    assert "--no-depth" not in play_argv("--poses", "external")
+
+
 def test_up_passes_camera_for_a_recorded_source_too(tmp_path, monkeypatch):
     from fmapping.up_config import LauncherOptions
     from services.launcher import up as launcher

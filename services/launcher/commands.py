@@ -64,6 +64,15 @@ def play_source(data, args) -> dict:
     return {"data": str(data), "camera": getattr(args, "camera", None), "data_fps": src["fps"], "topic": src["topic"]}
 
 
+def play_sends_depth(poses: str, mapper_uses_depth: bool) -> bool:
+    """Does ``io play`` send the dataset's depth with the frames? Only when a service of the run may use it:
+    the mapper with ``use_depth``, or an external pose producer (a geometric one, e.g. kiss-icp, reads the
+    frames' depth). An RGB-only run gets colour alone: no ground-truth depth travels where nothing may use it,
+    and a frame is 230 KB at 320x240 instead of 537 KB for every subscriber to copy and decode (the
+    tracker's inbox holds up to 64 of them when it falls behind)."""
+    return bool(mapper_uses_depth) or poses == "external"
+
+
 def play_wait_for(poses: str, view: bool = True) -> list[str]:
     """The services ``io play`` waits for before the first frame. With ``--poses external`` that
     includes the producer, which reports its status as its pose source (``status/external``, see

@@ -18,8 +18,9 @@ from fmapping.cli import source_options
 from fmapping.config import read_yaml_mapping
 from fmapping.up_config import (LauncherOptions, UpConfig, mapper_defaults, split_config, tracker_defaults,
                                 up_config_dict)
-from services.launcher.commands import (EXTERNAL_SOURCE, MONO_BOOTSTRAP_WINDOW, live_url, parser_of, play_source,
-                                        play_wait_for, resend_to, service_command, tracker_state, view_argv, view_mode)
+from services.launcher.commands import (EXTERNAL_SOURCE, MONO_BOOTSTRAP_WINDOW, live_url, parser_of, play_sends_depth,
+                                        play_source, play_wait_for, resend_to, service_command, tracker_state,
+                                        view_argv, view_mode)
 from services.launcher.resume import keep_logs, resume_args, save_run_args, start_over
 from services.launcher.supervise import Proc, linger, monitor, stop_all, wait_ready, write_summary
 from services.process import command_line
@@ -252,7 +253,8 @@ def run_up(args) -> int:
         play_argv = service_command(
             "services.io play", **play_source(data, args), fps=getattr(args, "fps", None) or 0, window=window,
             ack_from="mapper", wait_for=",".join(wait_for), start_timeout=play_start_timeout,
-            resend_to=resend_to(poses, live), start_after="mapper" if resuming else None, **net("play"))
+            resend_to=resend_to(poses, live), start_after="mapper" if resuming else None,
+            no_depth=not play_sends_depth(poses, info["config"]["mapper"].get("use_depth")), **net("play"))
         procs["play"] = Proc("play", play_argv, out, env)
         if view == "live":
             print(f"fmapping up: live viewer at {live_url(args)} (the recording also goes to {out / 'run.rrd'})",
