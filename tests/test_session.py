@@ -63,6 +63,27 @@ def test_pose_session_buffers_the_bootstrap_and_holds_until_the_late_anchor(room
     assert ate(est, gt, "none")["rmse_m"] < 0.02  # GT world frame and scale from the anchors
 
 
+def test_a_bootstrap_left_with_too_few_landmarks_to_track_against_fails_and_starts_again(room):
+    """The two-view start succeeds but its bundle adjustment leaves fewer landmarks than a reference needs
+    (``min_ref_points``, here out of reach): the attempt counts as a failed bootstrap, its frames are answered
+    unusable and the next frame starts again, instead of an exception out of the session."""
+    from fmapping.session import SKIPPED, PoseSession, SessionConfig
+    from fmapping.tracking.direct_tracker import TrackerConfig
+    from fmapping.tracking.mono import MonoConfig
+
+    sess = PoseSession(room.camera, TrackerConfig(), MonoConfig(min_ref_points=100_000),
+                       SessionConfig(restart_failed_bootstrap=True))
+    per_push = _run(sess, room)
+    assert sess.bootstrap_failures >= 1 and not sess.frontend.initialized
+    answered = [u for ups in per_push for u in ups]
+    assert answered and all(u.kind == SKIPPED and u.quality == 0.0 for u in answered)
+    assert len({u.index for u in answered}) == len(answered)  # each frame answered once
+    # the same frames with a reference in reach start at the first attempt
+    ok = _anchored_session(room, restart_failed_bootstrap=True)
+    _run(ok, room)
+    assert ok.bootstrap_failures == 0 and ok.frontend.initialized
+
+
 def test_pose_session_finish_releases_what_the_late_anchor_held(room):
     """A stream that ends before frame 14: ``finish`` gives the held frames at the bootstrap's scale."""
     sess = _anchored_session(room)

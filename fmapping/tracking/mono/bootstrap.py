@@ -136,7 +136,12 @@ class Bootstrap:
         self.init_info = {"frame": int(index), "frames": len(self._buf), "points": int(len(sel)),
                           "median_parallax_deg": median_par, "scale": s, "scale_from": how,
                           "two_view_vs_photometric_deg": two_view_vs_photo, "ba_rms_px": rms}
-        self._set_reference(index, rgb, gray)
+        try:
+            self._set_reference(index, rgb, gray)
+        except ValueError as e:  # the bundle adjustment left too few landmarks to track against: not a start
+            self.init_info["failed"] = str(e)
+            self.failed = True
+            return None
         self.initialized = True
         self._buf = []
         if how != "unit_depth" and anchor_baseline is not None and c.late_anchor_frames > 0:
