@@ -31,6 +31,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stream-idle", type=float, default=2.0,
                    help="mono: ... while frames keep coming: once none has arrived for this many seconds (the "
                         "stream ended or paused), every frame waiting is tracked")
+    p.add_argument("--interpolate-skipped", default="on", choices=["on", "off"],
+                   help="mono: a frame skipped to keep pace gets the pose between its tracked neighbours', published "
+                        "with the next frame's (off: answered at once with quality 0, no pose)")
     p.add_argument("--ba-thread", default="on", choices=["on", "off"],
                    help="mono: keyframe bundle adjustment in a worker thread, merged between frames, so that a "
                         "keyframe does not hold up its pose (off: on the frame path, as fmapping slam)")
@@ -65,6 +68,7 @@ def main(argv=None, session=None, keys=None) -> int:
     opts = TrackerServiceOptions(max_buffer=args.max_buffer, use_depth=args.use_depth, frontend=args.frontend,
                                  anchor_source=args.anchor, state_path=args.state,
                                  skip_behind=args.skip_behind, stream_idle_s=args.stream_idle,
+                                 interpolate_skipped=args.interpolate_skipped == "on",
                                  ba_thread=args.ba_thread == "on").validate()
     # frames thinned evenly when the inbox is full (a long gap loses the track; evenly spread gaps do not)
     with Service("tracker", args, capacities=CAPACITIES, max_bytes=MAX_BYTES, session=session, keys=keys,

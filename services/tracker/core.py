@@ -93,13 +93,16 @@ class TrackerServiceOptions:
     # newest keyframes kept (the nearest in frame number to the first new frame is tried first)
     resume_keyframes: int = 5
     # mono, real time: a tracked frame with at least this many newer frames waiting (here and in the shell's
-    # inbox) is answered with quality 0 instead of tracked ("frames_skipped_behind"), never two in a row and
+    # inbox) is not tracked ("frames_skipped_behind"; see interpolate_skipped for its answer), never two in a row and
     # never the frame after a lost one, so that the answers keep pace with the camera (0: never skip). A
     # keyframe is decided by tracking its frame, so a skipped frame is never one.
     skip_behind: int = 1
     # ... while frames keep coming: once none has arrived for this long (the stream ended or paused), every
     # frame waiting is tracked
     stream_idle_s: float = 2.0
+    # mono: a frame skipped to keep pace gets the pose between its tracked neighbours', published just before the
+    # next one (SessionConfig.interpolate_skipped; off: answered at once with quality 0, no pose)
+    interpolate_skipped: bool = True
     # mono: the keyframe bundle adjustment in a worker thread, merged between frames (MonoConfig.ba_thread): a
     # keyframe no longer holds up its frame's pose. Off here (the poses then equal fmapping slam's exactly);
     # the service's CLI turns it on unless playback is paced.
@@ -282,7 +285,7 @@ class TrackerCore(MapFrontend, ServiceCore):
         o = self.opts
         policy = SessionConfig(republish=o.republish, republish_min_m=o.republish_min_m,
                                republish_min_deg=o.republish_min_deg, restart_failed_bootstrap=True,
-                               max_poses=o.max_poses)
+                               max_poses=o.max_poses, interpolate_skipped=o.interpolate_skipped)
         import dataclasses
 
         from fmapping.tracking.mono import MonoConfig
@@ -410,7 +413,7 @@ class TrackerCore(MapFrontend, ServiceCore):
             self.waiting.popitem(last=False)
             if self._keep_pace():
                 self.counters.inc("frames_skipped_behind")
-                out.append(self._skip(seq, f.timestamp))
+                out += self._publish(sess.skip(seq, f.timestamp))  # now without a pose, or interpolated later
                 continue
             ups = sess.push(seq, np.asarray(f.rgb), f.timestamp, extra_depth=self._extra_depth())
             self._count(f, sess.last)
@@ -418,6 +421,7 @@ class TrackerCore(MapFrontend, ServiceCore):
             self._save_state()
             self.counters.set("loop_closures", len(sess.frontend.loops))
             self.counters.set("keyframes_deferred", sess.frontend.keyframes_deferred)
+            self.counters.set("frames_interpolated", sess.interpolated)
         self.counters.set("waiting_frames", len(self.waiting))
         return out
 

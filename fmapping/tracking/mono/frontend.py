@@ -458,6 +458,22 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         return {i: orthonormalize(self.store.kf_pose[k] @ rel) for i, (k, rel) in self.store.rel.items()
                 if k in keep and k in self.store.kf_pose}
 
+    def interpolate_frame(self, index: int, before: int, after: int, w: float) -> Optional[np.ndarray]:
+        """Frame ``index``, not tracked, between tracked frames ``before`` and ``after``: its pose ``w`` of the
+        way from ``before``'s to ``after``'s as the front end has them now (translation linear, rotation on the
+        geodesic), kept relative to ``before``'s keyframe like a tracked frame's (bundle adjustments move it).
+        None when either is not a tracked frame."""
+        from fmapping.trajectory import interpolate_poses
+
+        rel = self.store.rel
+        if before not in rel or after not in rel or any(rel[i][0] not in self.store.kf_pose for i in (before, after)):
+            return None
+        ends = [self.store.kf_pose[rel[i][0]] @ rel[i][1] for i in (before, after)]
+        c2w = orthonormalize(interpolate_poses([w], [0.0, 1.0], np.stack(ends), max_dt=1.0)[0][0])
+        kf = rel[before][0]
+        rel[index] = (kf, inv_pose(self.store.kf_pose[kf]) @ c2w)
+        return c2w
+
     def refined_poses(self) -> dict:
         """The poses the last keyframe's update may have moved: those of the BA window's frames, or
         every frame's after a loop closure. What to hand on to a mapper after a keyframe."""
