@@ -569,6 +569,7 @@ def export_mesh(
     visibility_tol: float = 0.05,
     stride: int = 4,
     should_stop: StopFn = None,
+    grid_chunk: int = 262144,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Marching-cubes mesh of the field, culled to what the cameras at ``poses`` saw.
 
@@ -579,11 +580,11 @@ def export_mesh(
     1/``stride`` resolution). Faces with any unseen vertex are dropped. Returns
     vertices (V, 3) float64, faces (F, 3) int64 and vertex colours (V, 3) uint8 (the
     field's colour at the vertex). ``should_stop`` is asked before each pose's test
-    (:mod:`fmapping.cancel`).
+    (:mod:`fmapping.cancel`). ``grid_chunk``: grid nodes per field evaluation (:func:`field_opacity_grid`).
     """
     from skimage.measure import marching_cubes
 
-    alpha, origin, spacing = field_opacity_grid(field, aabb, resolution)
+    alpha, origin, spacing = field_opacity_grid(field, aabb, resolution, chunk=grid_chunk)
     if not (alpha.min() < level < alpha.max()):
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8)
     verts, faces, _, _ = marching_cubes(alpha, level=level, spacing=tuple(spacing))

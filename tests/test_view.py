@@ -277,6 +277,39 @@ def test_rendered_view_is_the_blob_depth_at_the_preview_resolution():
     assert (depth > 0).sum() == pytest.approx(44 * 44, rel=0.2)
 
 
+def test_previews_in_small_chunks_equal_the_one_pass_render_and_mesh():
+    """The preview renders ``PREVIEW_CHUNK`` rays and evaluates the mesh grid ``MESH_GRID_CHUNK`` nodes at a
+    time (a tenth of the temporaries): the same image and mesh as in one pass (well under 1,024 / 32,768 here
+    would be one chunk, so the sizes below force several)."""
+    import torch
+
+    from fmapping.camera import PinholeCamera
+    from fmapping.export import export_mesh
+    from fmapping.render import render_image
+
+    field, rs = view.field_of_snapshot(_blob_snapshot())
+    big = {"fx": 500.0, "fy": 500.0, "cx": 319.5, "cy": 239.5, "width": 640, "height": 480}
+    cam = view.preview_camera(big, 160)
+    assert cam.width * cam.height > 4 * view.PREVIEW_CHUNK
+    rgb, depth = view.render_view(field, rs, cam, np.eye(4))
+    one = render_image(field, cam, np.eye(4), rs.near, rs.far, rs.n_coarse, background=0.0,
+                       n_importance=rs.n_fine, chunk=cam.width * cam.height)
+    torch.testing.assert_close(torch.from_numpy(rgb), (one["rgb"].clamp(0, 1) * 255).round().to(torch.uint8))
+    acc = one["acc"].numpy()
+    ref = np.where(acc > 0.5, one["depth_normalized"].numpy(), 0.0).astype(np.float32)
+    np.testing.assert_allclose(depth, ref, rtol=1e-5, atol=1e-5)
+    res = 64
+    assert res ** 3 > 4 * view.MESH_GRID_CHUNK
+    poses = [np.eye(4)]
+    v, f, c = view.field_mesh(field, rs, PinholeCamera.from_dict(big), poses, res)
+    v1, f1, c1 = export_mesh(field, field.aabb, res, poses, PinholeCamera.from_dict(big), near=rs.near,
+                             far=rs.far, grid_chunk=res ** 3)
+    assert len(f) > 0
+    np.testing.assert_allclose(v, v1, atol=1e-9)
+    np.testing.assert_array_equal(f, f1)
+    np.testing.assert_array_equal(c, c1)
+
+
 def test_renders_and_meshes_are_rate_limited_and_the_mesh_comes_at_the_end():
     cap, clock = Capture(), Clock()
     v = view.Viewer(cap, clock=clock, render_every=2.0, mesh_every=10.0)
