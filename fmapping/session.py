@@ -73,6 +73,11 @@ class PoseUpdate:
         return self.quality > 0
 
 
+def no_pose(index: int, timestamp: float) -> PoseUpdate:
+    """The answer for frame ``index`` that has no pose (``kind == "skipped"``, ``quality = 0``, identity ``c2w``)."""
+    return PoseUpdate(index, timestamp, np.eye(4), 0.0, SKIPPED)
+
+
 class PoseSession:
     """The front end's poses under the session policy (module docstring). ``c2w0`` / ``baseline``
     fix world frame and scale anchor explicitly (``fmapping slam`` with GT); without them they come from
@@ -159,7 +164,7 @@ class PoseSession:
                 and not self.frontend.scale_pending):
             self._skipped = (index, timestamp, prev[0], prev[1])
             return []
-        return [PoseUpdate(index, timestamp, np.eye(4), 0.0, SKIPPED)]
+        return [no_pose(index, timestamp)]
 
     def _after_skipped(self, index: int, timestamp: float, r) -> list[PoseUpdate]:
         """The frame skipped before frame ``index`` (tracked as ``r``): its pose between its neighbours', on
@@ -172,7 +177,7 @@ class PoseSession:
             w = (t_k - t_b) / (timestamp - t_b) if timestamp > t_b else 0.5
             c2w = self.frontend.interpolate_frame(k, before, index, min(max(w, 0.0), 1.0))
         if c2w is None:
-            return [PoseUpdate(k, t_k, np.eye(4), 0.0, SKIPPED)]
+            return [no_pose(k, t_k)]
         self.interpolated += 1
         q = self.published[before].quality if before in self.published else 1.0
         return self._give(PoseUpdate(k, t_k, c2w, float(max(min(q, r.inlier_ratio), 1e-6))))
@@ -194,7 +199,7 @@ class PoseSession:
                 self.failed = True
                 return []
             self._new_frontend()
-            return [PoseUpdate(s, boot[s], np.eye(4), 0.0, SKIPPED) for s in sorted(boot)]
+            return [no_pose(s, boot[s]) for s in sorted(boot)]
         if poses is None:
             return []
         out: list[PoseUpdate] = []
@@ -266,12 +271,12 @@ class PoseSession:
         out: list[PoseUpdate] = []
         if self._skipped is not None:  # no frame after it: no pose
             (k, t_k, _, _), self._skipped = self._skipped, None
-            out.append(PoseUpdate(k, t_k, np.eye(4), 0.0, SKIPPED))
+            out.append(no_pose(k, t_k))
         if self.frontend.initialized and self.frontend.flush_ba() and self.cfg.republish:
             out += self._refined()
         if not self.frontend.initialized and self._boot:
             boot, self._boot = self._boot, {}
-            out += [PoseUpdate(s, boot[s], np.eye(4), 0.0, SKIPPED) for s in sorted(boot)]
+            out += [no_pose(s, boot[s]) for s in sorted(boot)]
         return out + self.release(settle=why)
 
 
