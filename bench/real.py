@@ -567,6 +567,7 @@ class Bench:
         if self.a.quick:
             ov = {**ov, "init_iters_per_round": 20, "final_global_iters": 20}
             kw = {"size": 100, "max_views": 24}
+        self.maps.mkdir(parents=True, exist_ok=True)  # the other rows' pictures may not have made it
         r = run_lego(DATA / "nerf_synthetic_lego", self.maps / f"lego_{variant}.png", overrides=ov, **kw)
         self.put("lego", variant, r)
 

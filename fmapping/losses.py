@@ -171,12 +171,23 @@ def sample_frames(images: Tensor, frame: Tensor, uv: Tensor) -> Tensor:
     return out
 
 
+def view_angle_mask(points: Tensor, ray_dirs: Tensor, c2w: Tensor, max_angle_deg: float) -> Tensor:
+    """(V, M) bool: view ``v`` (``c2w`` (V, 4, 4)) sees world point ``points`` (M, 3) along a direction within
+    ``max_angle_deg`` of the point's own ray ``ray_dirs`` (M, 3, any length). A point seen from far around it
+    is more likely hidden there, or shows another side: multi-view stereo compares views of similar direction."""
+    d0 = torch.nn.functional.normalize(ray_dirs, dim=-1)
+    dv = torch.nn.functional.normalize(points[None] - c2w[:, None, :3, 3], dim=-1)  # (V, M, 3)
+    return (dv * d0[None]).sum(-1) >= math.cos(math.radians(max_angle_deg))
+
+
 def project_patches(points: Tensor, src: Tensor, images: Tensor, c2w: Tensor, camera: PinholeCamera, radius: int = 1,
-                    dilation: float = 1.0, min_z: float = 0.05) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                    dilation: float = 1.0, min_z: float = 0.05, ray_dirs: Optional[Tensor] = None,
+                    max_angle_deg: float = 0.0) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """World points (M, 3) of frames ``src`` (M,) seen in every view ``images`` (V, H, W, C) /
     ``c2w`` (V, 4, 4): returns pixel coordinates uv (V, M, 2), camera z (V, M), the mask (V, M)
-    of usable views (z > ``min_z``, the whole patch inside the image, not the point's own frame)
-    and the (2r+1)^2 patches around uv, offsets spaced ``dilation`` px (V, M, P, C).
+    of usable views (z > ``min_z``, the whole patch inside the image, not the point's own frame,
+    and with ``ray_dirs`` (M, 3) and ``max_angle_deg`` > 0 within that angle of the point's ray, see
+    :func:`view_angle_mask`) and the (2r+1)^2 patches around uv, offsets spaced ``dilation`` px (V, M, P, C).
     Differentiable w.r.t. the points, poses and images (masked entries hold clamped samples)."""
     v = images.shape[0]
     w2c = se3_inverse(c2w)  # (V, 4, 4)
@@ -187,6 +198,8 @@ def project_patches(points: Tensor, src: Tensor, images: Tensor, c2w: Tensor, ca
     off = patch_offsets(radius, dilation, device=points.device, dtype=uv.dtype)  # (P, 2)
     mask = (z > min_z) & camera.in_image(uv, margin=radius * dilation)
     mask &= src[None, :] != torch.arange(v, device=points.device)[:, None]
+    if ray_dirs is not None and max_angle_deg > 0:
+        mask &= view_angle_mask(points.detach(), ray_dirs.detach(), c2w.detach(), max_angle_deg)
     m, p = uv.shape[1], off.shape[0]
     patches = sample_views(images, (uv[:, :, None, :] + off).reshape(v, m * p, 2)).reshape(v, m, p, -1)
     return uv, z, mask, patches
@@ -219,6 +232,7 @@ def warping_loss(
     occlusion_tol: float = 0.1,
     ref_colors: Optional[Tensor] = None,
     ray_weight: Optional[Tensor] = None,
+    max_angle_deg: float = 0.0,
 ) -> WarpResult:
     """Multi-view photo-consistency of rendered depth.
 
@@ -232,7 +246,8 @@ def warping_loss(
     and channels). Masks: the source view itself, points with camera z < ``min_z``,
     patches not fully inside the image, and - when ``view_depths`` (V, H, W) rendered
     depth maps are given - points more than ``occlusion_tol`` (relative) behind the
-    surface that view sees. The per-ray error is the mean of the lowest
+    surface that view sees; with ``max_angle_deg`` > 0, views that see the point from farther than that
+    angle off its ray (:func:`view_angle_mask`). The per-ray error is the mean of the lowest
     ``ceil(keep * valid)`` view errors (``keep=0`` -> the minimum); the loss is its mean
     over rays with at least ``min_views`` valid views (optionally weighted by ``ray_weight``).
     """
@@ -243,7 +258,7 @@ def warping_loss(
         raise ValueError(f"warping_loss: c2w must be ({v}, 4, 4) for {v} images, got {tuple(c2w.shape)}")
     pts = origins + dirs * depth[:, None]  # (N, 3) world
     # target patches tgt (V, N, P, C)
-    uv_t, z, mask, tgt = project_patches(pts, src, images, c2w, camera, radius, dilation, min_z)
+    uv_t, z, mask, tgt = project_patches(pts, src, images, c2w, camera, radius, dilation, min_z, dirs, max_angle_deg)
     if view_depths is not None:
         d_at = sample_views(view_depths[..., None], uv_t.detach())[..., 0]  # (V, N)
         mask &= ~((d_at > 0) & (z.detach() > d_at * (1 + occlusion_tol)))
@@ -285,6 +300,8 @@ def sample_consistency_cost(
     keep: float = 0.5,
     min_z: float = 0.05,
     no_view_cost: float = 0.0,
+    ray_dirs: Optional[Tensor] = None,
+    max_angle_deg: float = 0.0,
 ) -> tuple[Tensor, Tensor]:
     """Photo-consistency cost of every ray sample (a plane-sweep style cost volume).
 
@@ -292,15 +309,17 @@ def sample_consistency_cost(
     ref_colors (N, P, C) the source patch of each ray. Each sample is projected
     into every other view; the cost is the robust mean (best ``keep`` fraction) of
     patch errors. Returns cost (N, S) and the number of valid views (N, S).
-    Samples seen by no other view get ``no_view_cost``. Not differentiable by design
+    Samples seen by no other view get ``no_view_cost``. With ``ray_dirs`` (N, 3) and ``max_angle_deg`` > 0,
+    only views within that angle of the ray count (:func:`view_angle_mask`). Not differentiable by design
     (used as a fixed per-sample target for the rendering weights).
     """
     with torch.no_grad():
         n, s, _ = points.shape
         v = images.shape[0]
         dev = points.device
+        dirs = None if ray_dirs is None else ray_dirs[:, None].expand(n, s, 3).reshape(-1, 3)
         _, _, mask, tgt = project_patches(points.reshape(-1, 3), src[:, None].expand(n, s).reshape(-1), images, c2w,
-                                          camera, radius, dilation, min_z)  # (V, NS), (V, NS, P, C)
+                                          camera, radius, dilation, min_z, dirs, max_angle_deg)  # (V, NS), patches
         tgt = tgt.reshape(v, n, s, tgt.shape[2], -1)
         err = (tgt - ref_colors[None, :, None]).abs().mean((-1, -2)).reshape(v, -1).T  # (NS, V)
         mask = mask.T

@@ -1,5 +1,7 @@
 """Losses against analytic cases: a textured plane z = 2 seen by two cameras."""
 
+import math
+
 import pytest
 import torch
 
@@ -8,7 +10,7 @@ from fmapping.geometry import make_pose
 from fmapping.losses import (
     depth_l1_loss, distortion_loss, expected_depth_l1, gaussian_blur, patch_offsets,
     photometric_loss, project_patches,
-    sample_consistency_cost, sample_frames, sample_views, warping_loss,
+    sample_consistency_cost, sample_frames, sample_views, view_angle_mask, warping_loss,
 )
 
 CAM = PinholeCamera(80.0, 80.0, 39.5, 29.5, 80, 60)
@@ -185,6 +187,52 @@ def test_warping_loss_robust_keep_uses_best_views():
     all_views = warping_loss(o, d, depth, uv, src, imgs3, c2w3, CAM, keep=1.0)
     best = warping_loss(o, d, depth, uv, src, imgs3, c2w3, CAM, keep=0.5)
     assert best.loss.item() < 0.01 < all_views.loss.item()
+
+
+def test_view_angle_mask_against_the_angle_each_camera_sees_the_point_from():
+    """A point at the origin on a ray along +z; cameras on a circle of 2 m around it in the x-z plane, placed
+    so that the angle between their line of sight to the point and the ray is 0, 30, 44, 46, 90 and 180 deg."""
+    angles = [0.0, 30.0, 44.0, 46.0, 90.0, 180.0]
+    centres = torch.tensor([[-2 * math.sin(math.radians(a)), 0.0, -2 * math.cos(math.radians(a))] for a in angles])
+    c2w = torch.eye(4).repeat(len(angles), 1, 1)
+    c2w[:, :3, 3] = centres
+    pts = torch.zeros(1, 3)
+    got = view_angle_mask(pts, torch.tensor([[0.0, 0.0, 3.0]]), c2w, 45.0)
+    assert got[:, 0].tolist() == [True, True, True, False, False, False]
+    assert view_angle_mask(pts, torch.tensor([[0.0, 0.0, 1.0]]), c2w, 100.0)[:, 0].tolist() == [True] * 5 + [False]
+
+
+def test_warping_loss_max_angle_leaves_out_a_view_from_far_around():
+    """Two views of the plane as above and a third from 60 deg around the points whose image disagrees (an
+    occluder seen from the side): with every view the loss at the true depth is large, with a 45-deg limit it
+    is the two-view loss; the same for the per-sample cost."""
+    imgs, c2w = setup_two_views()
+    uv, o, d = _center_rays(c2w)
+    src = torch.zeros(len(uv), dtype=torch.long)
+    depth = torch.full((len(uv),), PLANE_Z)
+    # a camera at 60 deg around the point (0, 0, 2), turned to look at it
+    a = math.radians(60.0)
+    centre = torch.tensor([2 * math.sin(a), 0.0, 2 - 2 * math.cos(a)])
+    z = torch.tensor([0.0, 0.0, 2.0]) - centre
+    z = z / z.norm()
+    x = torch.linalg.cross(torch.tensor([0.0, 1.0, 0.0]), z)
+    rot = torch.stack([x, torch.linalg.cross(z, x), z], 1)
+    c2w3 = torch.cat([c2w, make_pose(rot, centre)[None]])
+    bad = torch.rand(1, CAM.height, CAM.width, 3, generator=torch.Generator().manual_seed(0))
+    imgs3 = torch.cat([imgs, bad])
+    two = warping_loss(o, d, depth, uv, src, imgs, c2w, CAM, keep=1.0)
+    every = warping_loss(o, d, depth, uv, src, imgs3, c2w3, CAM, keep=1.0)
+    limited = warping_loss(o, d, depth, uv, src, imgs3, c2w3, CAM, keep=1.0, max_angle_deg=45.0)
+    assert every.mask[:, 2].float().mean() > 0.5  # the side view does see most of the points
+    assert not limited.mask[:, 2].any()
+    assert two.loss.item() < 0.01 < every.loss.item()
+    torch.testing.assert_close(limited.loss, two.loss)
+    pts = (o + d * depth[:, None])[:, None]
+    ref = sample_frames(imgs, src, uv[:, None] + patch_offsets(1))
+    c_two, _ = sample_consistency_cost(pts, ref, src, imgs, c2w, CAM, keep=1.0)
+    c_lim, n_lim = sample_consistency_cost(pts, ref, src, imgs3, c2w3, CAM, keep=1.0, ray_dirs=d, max_angle_deg=45.0)
+    torch.testing.assert_close(c_lim, c_two)
+    assert (n_lim == 1).all()
 
 
 def test_sample_consistency_cost_minimum_at_surface():

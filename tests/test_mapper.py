@@ -483,7 +483,10 @@ def test_the_final_map_is_exported_from_the_keyframes_and_the_newest_frames(data
 
 @pytest.mark.parametrize("kw,match", [({"exposure_start": "guess"}, "exposure_start"),
                                       ({"consistency_blur": -1.0}, "consistency_blur"),
-                                      ({"consistency_blur": float("nan")}, "consistency_blur")])
+                                      ({"consistency_blur": float("nan")}, "consistency_blur"),
+                                      ({"pc_keep": 0.0}, "pc_keep"),
+                                      ({"consistency_max_angle": -5.0}, "consistency_max_angle"),
+                                      ({"consistency_max_angle": float("nan")}, "consistency_max_angle")])
 def test_bad_exposure_start_or_blur_is_named(kw, match):
     with pytest.raises(ValueError, match=match):
         MapperConfig(**kw).validate()

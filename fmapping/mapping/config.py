@@ -78,6 +78,17 @@ class MapperConfig:
     pc_rays: int = 512  # rays (of rays_per_iter) that get the per-sample cost
     pc_views: int = 4  # other window views the per-sample cost is computed in
     pc_radius: int = 0  # patch radius of the per-sample cost
+    # share of a sample's views (lowest costs) its photo-consistency cost averages (1: all). 0.5 with the 45-deg limit
+    # below: 7-Scenes dev 50.1 % / 11.90 cm against 51.9 % / 11.33 cm with 1 (bench/results/probes_2026-12-05c/)
+    pc_keep: float = 1.0
+    # the warping and photo-consistency losses compare a ray's point only with the views that see it within this
+    # angle of the ray (0: every view), as multi-view stereo picks its views: from far around, the point is often
+    # hidden or shows another side. fmapping map, GT poses, RGB only (bench/results/probes_2026-12-05c/): NeRF lego
+    # novel-view PSNR 20.25 dB with every view, 21.64 / 21.75 / 21.91 / 21.11 dB at 20 / 30 / 45 / 60 deg; 7-Scenes
+    # dev 50.4 % (5 cm) with every view, 51.5 / 51.9 / 48.3 % at 30 / 45 / 60 deg (no trend: a change this small
+    # moves the map by a few points either way); default rooms s0, s1 96.5 / 95.3 -> 96.6 / 95.8 %; wide rooms s0-4
+    # mean 68.8 -> 68.3 % (45 deg)
+    consistency_max_angle: float = 45.0
     # Gaussian sigma (px) of the images the warping and photo-consistency losses compare (0: the raw images): noise,
     # JPEG and each frame's own motion blur disagree between views at the finest scale. fmapping map --poses gt,
     # RGB only, wide synthetic seeds 0-4, completion ratio: 0 -> 1.0 px 69.2/66.0/72.5/63.9/63.7 ->
@@ -148,6 +159,9 @@ class MapperConfig:
                              f"got {self.keyframe_codec!r}, {self.keyframe_jpeg_quality}")
         if self.exposure_start not in ("fit", "none"):
             raise ValueError(f"MapperConfig.exposure_start must be fit or none, got {self.exposure_start!r}")
+        if not 0 < self.pc_keep <= 1 or not 0 <= self.consistency_max_angle <= 180:
+            raise ValueError(f"MapperConfig: pc_keep must be in (0, 1] and consistency_max_angle in [0, 180] degrees, "
+                             f"got {self.pc_keep}, {self.consistency_max_angle}")
         if not self.consistency_blur >= 0:
             raise ValueError(f"MapperConfig.consistency_blur must be >= 0, got {self.consistency_blur}")
         if self.warp_depth not in ("far", "expected"):

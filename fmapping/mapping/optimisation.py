@@ -170,8 +170,9 @@ class OptimisationStep:
             for dil in cfg.warp_dilations:
                 ref = _pixel_patches(scene_imgs, ray_view, pix_u, pix_v, cfg.warp_radius, int(round(float(dil))))
                 res = warping_loss(origins, dirs, depth, uv, w_src, w_imgs, w_c2w, cam, radius=cfg.warp_radius,
-                                   dilation=float(dil), keep=cfg.warp_keep, min_z=cfg.near, ray_weight=hit_weight,
-                                   ref_colors=ref)
+                                   dilation=float(dil), keep=cfg.warp_keep, min_z=cfg.near,
+                                   ray_weight=hit_weight,
+                                   ref_colors=ref, max_angle_deg=cfg.consistency_max_angle)
                 warp = warp + res.loss / len(cfg.warp_dilations)
             loss = loss + cfg.warp_weight * warp
         pc = torch.zeros((), device=self.device)
@@ -225,7 +226,8 @@ class OptimisationStep:
         pts = origins[:m, None].detach() + dirs[:m, None].detach() * t[..., None]
         ref = _pixel_patches(imgs, ray_view[:m], pix_u[:m], pix_v[:m], cfg.pc_radius, 1)
         cost, nval = sample_consistency_cost(pts, ref, src, imgs[views], c2w[views].detach(), self.camera,
-                                             radius=cfg.pc_radius, keep=1.0, min_z=cfg.near)
+                                             radius=cfg.pc_radius, keep=cfg.pc_keep, min_z=cfg.near,
+                                             ray_dirs=dirs[:m].detach(), max_angle_deg=cfg.consistency_max_angle)
         valid = (nval > 0).to(cost.dtype)
         cbar = (cost * valid).sum(-1, keepdim=True) / valid.sum(-1, keepdim=True).clamp_min(1)
         w = out.weights[:m]
