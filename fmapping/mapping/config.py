@@ -84,7 +84,8 @@ class MapperConfig:
     # the warping and photo-consistency losses compare a ray's point only with the views that see it within this
     # angle of the ray (0: every view), as multi-view stereo picks its views: from far around, the point is often
     # hidden or shows another side. fmapping map, GT poses, RGB only (bench/results/probes_2026-12-05c/): NeRF lego
-    # novel-view PSNR 20.25 dB with every view, 21.64 / 21.75 / 21.91 / 21.11 dB at 20 / 30 / 45 / 60 deg; 7-Scenes
+    # novel-view PSNR 20.25 dB with every view, 21.64 / 21.75 / 21.91 / 21.11 dB at 20 / 30 / 45 / 60 deg (mapper seed
+    # 1: 20.48 -> 22.01 dB at 45); 7-Scenes
     # dev 50.4 % (5 cm) with every view, 51.5 / 51.9 / 48.3 % at 30 / 45 / 60 deg (no trend: a change this small
     # moves the map by a few points either way); default rooms s0, s1 96.5 / 95.3 -> 96.6 / 95.8 %; wide rooms s0-4
     # mean 68.8 -> 68.3 % (45 deg)
