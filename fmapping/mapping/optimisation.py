@@ -170,8 +170,7 @@ class OptimisationStep:
             for dil in cfg.warp_dilations:
                 ref = _pixel_patches(scene_imgs, ray_view, pix_u, pix_v, cfg.warp_radius, int(round(float(dil))))
                 res = warping_loss(origins, dirs, depth, uv, w_src, w_imgs, w_c2w, cam, radius=cfg.warp_radius,
-                                   dilation=float(dil), keep=cfg.warp_keep, min_z=cfg.near,
-                                   ray_weight=hit_weight,
+                                   dilation=float(dil), keep=cfg.warp_keep, min_z=cfg.near, ray_weight=hit_weight,
                                    ref_colors=ref, max_angle_deg=cfg.consistency_max_angle)
                 warp = warp + res.loss / len(cfg.warp_dilations)
             loss = loss + cfg.warp_weight * warp
