@@ -374,3 +374,41 @@ def test_grid_learns_opacity_as_fast_as_cp():
     assert grid_loss <= max(cp_loss, 0.01)  # ... and so does the grid
     assert grid_empty < 0.05  # without filling the empty half
     assert old_loss > 0.4  # the old start: acc ~ 0 everywhere (MSE ~ the slab's share, ~0.47)
+
+
+@pytest.mark.parametrize("kind", ["cp", "vm"])
+@pytest.mark.parametrize("grow", [True, False])
+def test_refit_box_keeps_what_the_field_holds(kind, grow):
+    """Moving a field onto a new box (grown as the camera explores, or cut down to the points) keeps its
+    density and appearance at every world point both boxes hold. Bilinear resampling is exact for factors
+    that are linear in position, so the factors are set to random linear functions first; points of the new
+    box outside the old one are empty (a zero factor in every term)."""
+    f = build_field(FieldConfig(kind=kind, **TINY[kind]), AABB).double()
+    rng = np.random.default_rng(7)
+    lo, hi = AABB
+    with torch.no_grad():
+        for name, p in f.named_parameters():
+            if not name.endswith(("lines", "planes")):
+                continue
+            r = p.shape[2]
+            t = torch.linspace(-1.0, 1.0, r, dtype=p.dtype)
+            a = torch.tensor(rng.normal(size=p.shape[:2] + (3,)), dtype=p.dtype)  # per term: c + gx t_x + gy t_y
+            if name.endswith("lines"):
+                p.copy_((a[..., 0:1] + a[..., 1:2] * t)[..., None])
+            else:
+                ty, tx = torch.meshgrid(t, t, indexing="ij")
+                p.copy_(a[..., 0, None, None] + a[..., 1, None, None] * tx + a[..., 2, None, None] * ty)
+    new = np.stack([lo - [0.7, 0.3, 1.1], hi + [0.4, 0.9, 0.2]]) if grow else \
+        np.stack([lo + [0.5, 0.2, 0.9], hi - [0.6, 0.4, 1.3]])
+    inner = np.stack([np.maximum(lo, new[0]), np.minimum(hi, new[1])])
+    # points at least one new cell inside both boxes (the resampled node next to the old boundary is zero)
+    cell = (new[1] - new[0]) / (f.cfg.resolution - 1)
+    x = torch.tensor(inner[0] + cell + rng.random((200, 3)) * (inner[1] - inner[0] - 2 * cell))
+    before = (f.density_raw(x), f.color(x))
+    f.refit_box(new)
+    np.testing.assert_allclose(f.aabb.numpy(), new)
+    torch.testing.assert_close(f.density_raw(x), before[0], rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(f.color(x), before[1], rtol=1e-9, atol=1e-9)
+    if grow:  # beyond the old box by more than a cell: zero raw density (empty after the shift)
+        out = torch.tensor(np.stack([new[0] + 0.3 * cell, new[1] - 0.3 * cell]))
+        assert torch.all(f.density_raw(out) == 0.0)

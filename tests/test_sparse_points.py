@@ -264,3 +264,40 @@ def test_fill_depths_is_exact_on_a_plane_and_skips_depth_edges():
     # long triangles are refused: with 5 points nothing is filled at a 10 px edge limit
     px, fz, _ = fill_depths(uv[:5], z[:5], w[:5], 160, 120, step=4.0, max_edge_px=10.0, max_ratio=1.5)
     assert len(fz) == 0
+
+
+def test_a_box_guessed_from_the_frusta_gives_way_to_the_points_box(room_frames):
+    """A camera that only turns on the spot for the init has no points to bound the scene: the box is the
+    frusta's near..far guess (6 m past the camera). Once the camera moves and points triangulate, the first
+    window's box is the points box, inside the guess and around the room, not the guess grown further."""
+    from fmapping.mapping import Mapper, MapperConfig
+
+    scene, cam, c2w, views = room_frames
+    lo, hi = scene.bbox()
+    cfg = MapperConfig(init_frames=8, init_iters_per_round=1, init_rays_per_iter=64, iters_per_window=1,
+                       rays_per_iter=64, n_coarse=8, n_fine=4, final_global_iters=0, pc_weight=0.0, warp_weight=0.0,
+                       device="cpu")
+    m = Mapper(cfg, cam)
+    for k in range(cfg.init_frames):  # turning on the spot at the first pose: 1.5 deg a frame about the camera's y
+        a = np.radians(1.5 * k)
+        turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+        p = c2w[0].copy()
+        p[:3, :3] = c2w[0][:3, :3] @ turn
+        m.add_frame(render_view(scene, cam, p, supersample=1)[0], p)
+    assert m.initialized
+    guess = m.aabb.numpy().copy()
+    assert (guess[1] - guess[0]).max() > 6.0, guess  # the frusta out to far = 6 m
+    first = None
+    for i in range(1, 40):
+        m.add_frame(views[i][0], c2w[i])
+        if first is None and m.stats()["box_refits"] == 1:
+            first = m.aabb.numpy().copy()
+    assert first is not None, "the box was never re-fitted to the points"
+    # the first points box cuts the guess down (not grown past it) ...
+    assert np.prod(first[1] - first[0]) < 0.25 * np.prod(guess[1] - guess[0]), (first, guess)
+    # ... and the box ends around the room (5.0 x 4.2 x 3.0 m), grown with the points as the camera explored:
+    # at most 25 % of the room's extent past it on any side (measured: 1.11 m on x, the points' margin and the
+    # frusta out to their depth; growing from the guess would have kept its reach of 6 m past the cameras)
+    box = m.aabb.numpy()
+    pad = 0.25 * (hi - lo)
+    assert (box[0] > lo - pad).all() and (box[1] < hi + pad).all(), (box, lo, hi)

@@ -205,7 +205,7 @@ class Field(nn.Module):
         raise NotImplementedError
 
     def refit_box(self, aabb) -> None:
-        """Move the field onto a new box keeping its content (kinds that cannot raise NotImplementedError)."""
+        """Move the field onto a new box keeping its content (cp and vm; the other kinds raise NotImplementedError)."""
         raise NotImplementedError(f"a {self.cfg.kind!r} field cannot change its box")
 
     def flops_per_point(self) -> int:  # pragma: no cover

@@ -85,6 +85,8 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
         # frame id -> se(3) correction (camera side) of its pose in the current update (cfg.refine_poses)
         self._pose_delta: dict[int, torch.nn.Parameter] = {}
         self._box_refits = 0
+        # the box is the frusta's near..far guess (no points yet at the init): the first points box replaces it
+        self._box_provisional = False
 
     # ================================================================= public API
     def add_frame(self, rgb: np.ndarray, c2w: Optional[np.ndarray], timestamp: float = 0.0,
@@ -401,6 +403,7 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
                 b = points_box(self._sparse, self._poses, self.camera, cfg.bbox_margin)
             if b is None:
                 b = aabb_from_poses(poses, self.camera, cfg.near, cfg.far, cfg.bbox_margin)
+                self._box_provisional = cfg.bounds == "points" and self._sparse is not None
             box = torch.as_tensor(b, dtype=torch.float32)
         self.aabb = box.to(self.device)
         self.field = build_field(cfg.field, self.aabb.cpu()).to(self.device)  # seeded by cfg.field.seed
@@ -411,7 +414,9 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
 
     def _grow_box(self) -> None:
         """Re-fit the box to the triangulated points when they leave it (the camera explores): the box
-        only grows, the field is resampled onto it (:meth:`fmapping.field.Field.refit_box`)."""
+        only grows, the field is resampled onto it (:meth:`fmapping.field.Field.refit_box`). A box that was
+        only the frusta's guess (the init had no points: a camera turning on the spot) is replaced by the
+        first points box, smaller or not."""
         cfg = self.cfg
         if self._aabb_given is not None or cfg.bounds != "points" or self._sparse is None:
             return
@@ -419,11 +424,18 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
         if b is None:
             return
         cur = self.aabb.detach().cpu().numpy().astype(np.float64)
-        slack = cfg.bounds_grow * (cur[1] - cur[0])
-        if not ((cur[0] - b[0] > slack).any() or (b[1] - cur[1] > slack).any()):
-            return
+        if self._box_provisional:
+            new = np.stack([np.maximum(cur[0], b[0]), np.minimum(cur[1], b[1])])  # within the guess
+            if not (new[1] > new[0]).all():
+                return
+            self._box_provisional = False
+        else:
+            slack = cfg.bounds_grow * (cur[1] - cur[0])
+            if not ((cur[0] - b[0] > slack).any() or (b[1] - cur[1] > slack).any()):
+                return
+            new = np.stack([np.minimum(cur[0], b[0]), np.maximum(cur[1], b[1])])
         try:
-            self.field.refit_box(np.stack([np.minimum(cur[0], b[0]), np.maximum(cur[1], b[1])]))
+            self.field.refit_box(new)
         except NotImplementedError:
             return
         self.aabb = self.field.aabb.detach().clone()

@@ -50,6 +50,7 @@ class MapperStateIO:
             "pose_delta": {int(i): p.detach().cpu().clone() for i, p in self._pose_delta.items()},
             "sparse": None if self._sparse is None else self._sparse.state_dict(),
             "box_refits": self._box_refits,
+            "box_provisional": self._box_provisional,
         }
 
     def load_state_dict(self, d: dict) -> None:
@@ -78,6 +79,7 @@ class MapperStateIO:
         self._stats = [WindowStats(**s) for s in d["stats"]]
         self._gen.set_state(d["rng"].clone())
         self._box_refits = int(d.get("box_refits", 0))
+        self._box_provisional = bool(d.get("box_provisional", False))
         if self._sparse is not None and d.get("sparse") is not None:
             self._sparse.load_state_dict(d["sparse"])
         self._exposure = self._frame_params(d.get("exposure", {}))
