@@ -1,6 +1,6 @@
 """Quality on scenes the project has never seen: real data and unseen synthetic rooms, before / after.
 
-    python bench/real.py                          # every row, both variants (hours on 2 cores)
+    python bench/real.py                          # every row, three variants (hours on 2 cores)
     python bench/real.py --quick                  # smoke run: few frames, small sizes, no long row
     python bench/real.py --rows 7scenes_map,synth_map --variants after --seeds 0 1
     python bench/real.py --no-long                # the full run without the 700-frame row
@@ -21,9 +21,11 @@ Rows (a row whose data folder is missing is skipped with a note; data from ``../
 
 Variants, run side by side in one process, row by row: ``after`` = the default config; ``before`` = mapper
 overrides that restore the old behaviour (:data:`BEFORE`), only the keys ``MapperConfig`` has (the JSON records
-which were applied and which the config does not know yet). Writes ``bench/results/real.json`` (``--quick``:
-``/tmp/real_quick.json``), the table as Markdown next to it (``real.md``) and one PNG per map (top and side
-view of ``map.ply`` over the GT cloud in grey) into ``<out stem>_maps/``.
+which were applied and which the config does not know yet); by default also ``after+field={kind: vm}``, the VM
+field beside the CP default (better on most rows here, see ``bench/results/vm_and_box_2026-12-05/``).
+Writes ``bench/results/real.json`` (``--quick``: ``/tmp/real_quick.json``), the table as Markdown next to it
+(``real.md``) and one PNG per map (top and side view of ``map.ply`` over the GT cloud in grey) into
+``<out stem>_maps/``.
 """
 from __future__ import annotations
 
@@ -107,7 +109,8 @@ def posed_pct(summary: dict) -> Optional[float]:
 def variant_overrides(name: str) -> tuple[dict, list]:
     """(mapper overrides applied, keys asked for that MapperConfig does not have yet) of a variant:
     ``before`` | ``after``, optionally followed by ``+key=value`` mapper overrides (YAML values),
-    e.g. ``after+distortion_weight=0.01+sparse_fill_weight=0.3``."""
+    e.g. ``after+distortion_weight=0.01+sparse_fill_weight=0.3``; mappings merge, so
+    ``after+field={kind: vm}+field={vm_density_components: 8}`` sets both (a comma would split the variant)."""
     import yaml
 
     from fmapping.mapping import MapperConfig
@@ -116,7 +119,8 @@ def variant_overrides(name: str) -> tuple[dict, list]:
     asked = dict(BEFORE) if base == "before" else {}
     for kv in extra:
         k, v = kv.split("=", 1)
-        asked[k] = yaml.safe_load(v)
+        v = yaml.safe_load(v)
+        asked[k] = {**asked[k], **v} if isinstance(v, dict) and isinstance(asked.get(k), dict) else v
     have = {f.name for f in dataclasses.fields(MapperConfig)}
     return {k: v for k, v in asked.items() if k in have}, [k for k in asked if k not in have]
 
@@ -674,9 +678,9 @@ def main(argv=None) -> int:
     ap.add_argument("--rows", default=None, help=f"comma list of {', '.join(ROWS)} (default: all)")
     ap.add_argument("--long", action=argparse.BooleanOptionalAction, default=None,
                     help="include the 700-frame 7scenes_long row (default: yes, no with --quick)")
-    ap.add_argument("--variants", default="before,after",
+    ap.add_argument("--variants", default="before,after,after+field={kind: vm}",
                     help="comma list of before, after, each optionally with +key=value mapper overrides "
-                         "(after+distortion_weight=0.01)")
+                         "(after+distortion_weight=0.01; the default adds the VM field beside the CP default)")
     ap.add_argument("--seeds", type=int, nargs="+", default=None, help="synthetic seeds (default 0-4; --quick 0 1)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
     ap.add_argument("--out", default=None, help="JSON (default bench/results/real.json; --quick /tmp/real_quick.json)")
