@@ -17,7 +17,7 @@ class Job:
     max_frames: Optional[int] = None
     data_fps: Optional[float] = None  # frame rate for the timestamps of an image folder / video
     topic: Optional[str] = None  # image topic of a ROS bag
-    field: Optional[str] = None  # map: field kind cp | vm | mlp | grid (default: the config's)
+    field: Optional[str] = None  # map / slam: field kind cp | vm | mlp | grid (default: the config's)
     use_depth: bool = False  # supervise with sensor depth (RGB-D mode) when the data has it
     bbox: Optional[tuple] = None  # ((xmin, ymin, zmin), (xmax, ymax, zmax)): the user's scene box
     device: Optional[str] = None  # cpu | cuda | auto (None: the config's)
@@ -37,8 +37,10 @@ class Job:
         return cls(**kw)
 
     def mapper_config(self, cfg):
-        """``cfg`` (a :class:`~fmapping.mapping.MapperConfig`) with what the job says of the mapper: sensor
-        depth, the user's box, the device (``auto``: the config's)."""
+        """``cfg`` (a :class:`~fmapping.mapping.MapperConfig`) with what the job says of the mapper: the field
+        kind, sensor depth, the user's box, the device (``auto``: the config's)."""
+        if self.field:
+            cfg = dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, kind=self.field))
         if self.use_depth:
             cfg = dataclasses.replace(cfg, use_depth=True)
         if self.bbox is not None:

@@ -82,8 +82,6 @@ def scene_aabb(ds, cfg: MapperConfig, poses: list, use_depth: Optional[bool] = N
 def build_config(job: Job) -> MapperConfig:
     """The mapper config of a ``fmapping map`` job: its YAML, then the job's field, depth, box, device."""
     cfg = load_config(MapperConfig(), job.config)
-    if job.field:
-        cfg = dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, kind=job.field))
     cfg = job.mapper_config(cfg)
     if job.poses == "gt":
         cfg = dataclasses.replace(cfg, optimize_init_poses=False)  # ground truth is trusted
