@@ -37,13 +37,18 @@ def sample_lines(lines: Tensor, u: Tensor) -> Tensor:
     return out.squeeze(-1)
 
 
+def node_coords(old: Tensor, new: Tensor, r: int) -> Tensor:
+    """(3, R): where each of box ``new``'s ``r`` nodes per axis lies in box ``old``'s normalised
+    coordinates ([-1, 1] inside ``old``)."""
+    k = torch.linspace(0.0, 1.0, r, dtype=new.dtype, device=new.device)
+    x = new[0, :, None] + (new[1] - new[0])[:, None] * k  # (3, R) world position of every new node
+    return 2.0 * (x - old[0, :, None]) / (old[1] - old[0])[:, None] - 1.0
+
+
 def resample_lines(lines: Tensor, old: Tensor, new: Tensor) -> Tensor:
     """Lines (3, C, R, 1) over box ``old`` (2, 3) resampled onto ``new``'s nodes; zero where a node
     lies outside ``old`` (empty space in the CP product: one zero factor empties the term)."""
-    r = lines.shape[2]
-    k = torch.linspace(0.0, 1.0, r, dtype=lines.dtype, device=lines.device)
-    x = new[0, :, None] + (new[1] - new[0])[:, None] * k  # (3, R) world position of every new node
-    u = 2.0 * (x - old[0, :, None]) / (old[1] - old[0])[:, None] - 1.0
+    u = node_coords(old.to(lines.dtype), new.to(lines.dtype), lines.shape[2])
     grid = torch.stack([torch.zeros_like(u), u], -1).unsqueeze(2)  # (3, R, 1, 2)
     out = F.grid_sample(lines, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
     return torch.where((u.abs() <= 1.0 + 1e-6)[:, None, :, None], out, torch.zeros_like(out))

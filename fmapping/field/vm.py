@@ -39,7 +39,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .base import Field, FieldConfig, as_aabb, make_generator, randn_param, start_raw, tv_1d
-from .cp import resample_lines, sample_lines
+from .cp import node_coords, resample_lines, sample_lines
 from .decoder import ColorDecoder, linear
 
 #: (width axis, height axis) of each plane and the axis of its line.
@@ -57,10 +57,7 @@ def sample_planes(planes: Tensor, u: Tensor) -> Tensor:
 def resample_planes(planes: Tensor, old: Tensor, new: Tensor) -> Tensor:
     """Planes (3, C, R, R) over box ``old`` (2, 3) resampled onto ``new``'s nodes (plane ``a`` spans the
     axes ``MAT_MODES[a]``: width = first, height = second); zero where a node lies outside ``old``."""
-    r = planes.shape[-1]
-    k = torch.linspace(0.0, 1.0, r, dtype=planes.dtype, device=planes.device)
-    x = new[0, :, None] + (new[1] - new[0])[:, None] * k  # (3, R) world position of every new node per axis
-    u = 2.0 * (x - old[0, :, None]) / (old[1] - old[0])[:, None] - 1.0
+    u = node_coords(old.to(planes.dtype), new.to(planes.dtype), planes.shape[-1])  # (3, R) per axis
     grids, inside = [], []
     for i, j in MAT_MODES:
         uh, uw = torch.meshgrid(u[j], u[i], indexing="ij")  # (R rows = height axis j, R cols = width axis i)
