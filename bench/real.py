@@ -9,8 +9,11 @@ Rows (a row whose data folder is missing is skipped with a note; data from ``../
 
 * ``7scenes_map``   7-Scenes redkitchen dev (200 real 640x480 frames, RGB only), ``fmapping map --poses gt``:
   accuracy / completion / completion ratio (5 cm) of ``map.ply`` against the folder's ``gt_points.ply``,
-  held-out PSNR, window seconds (min / median), total seconds.
-* ``7scenes_slam``  the same clip, ``fmapping slam`` RGB only: Sim3 ATE, map scores after the trajectory's Sim3.
+  held-out PSNR, window seconds (min / median), total seconds; and where the accuracy error comes from
+  (:func:`error_breakdown`: the points that the GT's own depth frames saw as empty space, behind a surface, or
+  not at all, and the accuracy over the points they saw).
+* ``7scenes_slam``  the same clip, ``fmapping slam`` RGB only: Sim3 ATE, map scores after the trajectory's Sim3
+  (and their error breakdown).
 * ``7scenes_long``  7-Scenes redkitchen long (700 frames), slam RGB only: Sim3 ATE and the accepted loop
   closures checked against the GT (the loop's own relative pose, see :func:`check_loops`).
 * ``synth_map``     synthetic rooms (``generate_scene(..., variety="wide")`` when the generator has it) for
@@ -66,6 +69,9 @@ TARGETS = {
     "7scenes_map": [("accuracy_cm", "accuracy cm", "<=", 5.0, 2), ("completion_cm", "completion cm", "<=", 5.0, 2),
                     ("completion_ratio", "completion ratio % (5 cm)", ">=", 70.0, 1),
                     ("psnr_heldout", "held-out PSNR dB", ">=", 24.0, 2),
+                    ("accuracy_seen_cm", "accuracy cm, points the GT depth frames saw", None, None, 2),
+                    ("free_pct", "points where the GT depth saw empty space %", None, None, 1),
+                    ("unseen_pct", "points no GT depth frame saw %", None, None, 1),
                     ("window_seconds_median", "window s median", "<=", 2.0, 2),
                     ("window_seconds_min", "window s min", None, None, 2),
                     ("total_seconds", "total s", None, None, 0)],
@@ -170,6 +176,42 @@ def recon(stats: dict, out: Path, gt_ply: Optional[Path], align: Optional[tuple]
         return None
     r = eval_recon_files(str(out / "map.ply"), str(gt_ply), samples=200_000, threshold=0.05, seed=0, align=align)
     return {**r, "evaluated_by": "bench/real.py"}
+
+
+# 7-Scenes: its gt_points.ply is every 4th depth frame back-projected with the depth camera's intrinsics
+# (the data README: KinectFusion's 585, not the colour camera's 525)
+SEVEN_SCENES_DEPTH_CAMERA = (585.0, 585.0, 320.0, 240.0, 640, 480)
+SEVEN_SCENES_GT_EVERY = 4
+
+
+def error_breakdown(out: Path, data: Path, max_frames: Optional[int], align: Optional[tuple] = None) -> Optional[dict]:
+    """:func:`fmapping.metrics.error_sources` of ``out/map.ply`` (moved by ``align`` first) against the 7-Scenes
+    folder ``data``: which points the GT depth frames saw as empty space, behind a surface, or not at all."""
+    from fmapping.camera import PinholeCamera
+    from fmapping.datasets import open_dataset
+    from fmapping.metrics import ERROR_SOURCES, error_sources
+    from fmapping.ply import read_ply
+
+    ply, gt_ply = out / "map.ply", data / "gt_points.ply"
+    if not ply.is_file() or not gt_ply.is_file():
+        return None
+    pts = read_ply(ply).points.astype(np.float64)
+    if not len(pts):
+        return None
+    if align is not None:
+        sc, rot, t = align
+        pts = float(sc) * pts @ np.asarray(rot, np.float64).T + np.asarray(t, np.float64)
+    ds = open_dataset(data, max_frames=max_frames)
+    views = [(ds[i].depth, ds.gt_poses[i]) for i in range(0, len(ds), SEVEN_SCENES_GT_EVERY)
+             if ds.gt_poses[i] is not None and ds[i].depth is not None]
+    if not views:  # the long clip has no depth files
+        return None
+    r = error_sources(pts, read_ply(gt_ply).points, views, PinholeCamera(*SEVEN_SCENES_DEPTH_CAMERA))
+    flat = {"accuracy_seen_cm": r["accuracy_seen_cm"]}
+    for name in ERROR_SOURCES:
+        flat.update({f"{name}_pct": r[name]["share"], f"{name}_mean_cm": r[name]["mean_cm"],
+                     f"{name}_error_pct": r[name]["error_share"]})
+    return flat
 
 
 def sim3_to_gt(traj: Path, gt: list) -> tuple[Optional[tuple], Optional[np.ndarray]]:
@@ -421,6 +463,8 @@ class Bench:
              "points": s.get("points"), **window_seconds(st), "aabb": st.get("aabb"), "recon": rec}
         if rec:
             r.update({k: rec.get(k) for k in ("accuracy_cm", "completion_cm", "completion_ratio")})
+        r["error_sources"] = error_breakdown(out, data, nf)
+        r.update({k: (r["error_sources"] or {}).get(k) for k in ("accuracy_seen_cm", "free_pct", "unseen_pct")})
         gt = list(open_dataset(data, max_frames=nf).gt_poses)
         r["picture"] = self.picture(f"7scenes_map_{variant}", out, f"7-Scenes dev, map with GT poses ({variant}): "
                                     f"acc {_f(r.get('accuracy_cm'))} cm, ratio {_f(r.get('completion_ratio'), 1)} %",
@@ -451,6 +495,7 @@ class Bench:
              **window_seconds(st), "recon_sim3": rec}
         if rec:
             r.update({f"{k}_sim3": rec.get(k) for k in ("accuracy_cm", "completion_cm", "completion_ratio")})
+        r["error_sources_sim3"] = error_breakdown(out, data, nf, align) if align is not None else None
         r["picture"] = self.picture(f"{row}_{variant}", out, f"{folder}, slam RGB only ({variant}), map after the "
                                     f"trajectory's Sim3: ATE {_f(r['ate_sim3_cm'])} cm", data / "gt_points.ply", gt,
                                     align)

@@ -33,7 +33,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 __all__ = [
-    "sample_surface", "recon_metrics", "eval_recon_files",
+    "sample_surface", "recon_metrics", "eval_recon_files", "error_sources", "ERROR_SOURCES",
     "umeyama", "align_trajectory", "align_rotations", "rotation_errors_deg", "ate", "rpe", "eval_traj_files",
     "psnr", "ssim", "depth_l1", "rotation_angle_deg",
 ]
@@ -176,6 +176,72 @@ def eval_recon_files(pred, gt, samples: int = 200_000, threshold: float = 0.05, 
     if "note" in res:
         res["note"] = f"{pred}: {res['note']}"
     return res
+
+
+ERROR_SOURCES = ("near", "free", "behind", "unseen", "other")
+
+
+def error_sources(pred_pts, gt_pts, depth_views, camera, threshold: float = 0.05) -> dict:
+    """Where a cloud's accuracy error comes from, told by the depth frames the GT surface was made of.
+
+    ``depth_views``: pairs (depth (H, W) metres, 0 = no reading; c2w 4x4) seen through ``camera``
+    (a :class:`fmapping.camera.PinholeCamera`, e.g. the depth sensor's). Each predicted point
+    falls in the first class of :data:`ERROR_SOURCES` that fits it:
+
+    * ``near``: within ``threshold`` of its nearest GT point (counted as accurate);
+    * ``free``: some frame measured a surface behind it by more than ``threshold`` at its pixel,
+      so the sensor saw empty space there (a floater, or a surface placed too close);
+    * ``behind``: frames measured its pixel, and every one of them a surface in front of it by
+      more than ``threshold`` (a surface placed too far, or a part the GT never reached);
+    * ``unseen``: no frame has a reading at its pixel (outside every frustum, no depth): the GT
+      cannot judge it;
+    * ``other``: the rest (on a measured surface but far from the GT points, e.g. their sampling).
+
+    Returns per class ``{"share": % of the points, "mean_cm": their mean distance to the GT,
+    "error_share": % of the accuracy's sum}`` plus ``accuracy_cm`` (all points, as
+    :func:`recon_metrics`) and ``accuracy_seen_cm`` (the points some frame measured: all but
+    ``unseen``). Pixels are the nearest ones; metres in, centimetres and percent out."""
+    if not threshold > 0:
+        raise ValueError(f"error_sources: threshold must be > 0 metres, got {threshold}")
+    gt = _points(gt_pts, "error_sources gt")
+    pred = _points(pred_pts, "error_sources pred")
+    pred = pred[np.isfinite(pred).all(axis=1)]
+    if len(gt) == 0 or len(pred) == 0:
+        raise ValueError(f"error_sources: need points on both sides, got {len(pred)} predicted and {len(gt)} GT")
+    dist, _ = cKDTree(gt).query(pred, k=1, workers=-1)
+    free = np.zeros(len(pred), bool)
+    measured = np.zeros(len(pred), bool)
+    not_behind = np.zeros(len(pred), bool)  # some reading within threshold of the point or behind it
+    for depth, c2w in depth_views:
+        depth = np.asarray(depth, np.float64)
+        if depth.shape != (camera.height, camera.width):
+            raise ValueError(f"error_sources: depth frame {depth.shape} does not match the camera "
+                             f"({camera.height}, {camera.width})")
+        uv, z = camera.world_to_pixels(np.asarray(c2w, np.float64), pred)
+        u, v = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
+        ok = (z > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+        g = np.zeros(len(pred))
+        g[ok] = depth[v[ok], u[ok]]
+        ok &= np.isfinite(g) & (g > 0)
+        measured |= ok
+        free |= ok & (z < g - threshold)
+        not_behind |= ok & (z <= g + threshold)
+    near = dist < threshold
+    cls = np.full(len(pred), 4)
+    cls[~measured] = 3
+    cls[measured & ~not_behind] = 2
+    cls[free] = 1
+    cls[near] = 0
+    total = float(dist.sum())
+    out: dict[str, Any] = {"threshold_m": float(threshold), "n_pred": int(len(pred)),
+                           "accuracy_cm": 100.0 * float(dist.mean()),
+                           "accuracy_seen_cm": 100.0 * float(dist[measured].mean()) if measured.any() else None}
+    for k, name in enumerate(ERROR_SOURCES):
+        m = cls == k
+        out[name] = {"share": 100.0 * float(m.mean()),
+                     "mean_cm": 100.0 * float(dist[m].mean()) if m.any() else None,
+                     "error_share": 100.0 * float(dist[m].sum()) / total if total > 0 else 0.0}
+    return out
 
 
 # ----------------------------------------------------------------------------- trajectories

@@ -100,6 +100,48 @@ def test_partial_prediction_completion():
     assert r["completion_ratio"] == pytest.approx(frac, abs=0.3)
 
 
+def test_error_sources_classes_points_by_what_the_depth_frames_saw():
+    """A wall at z = 2 m seen by a depth camera at the origin, with readings on its left half only.
+    Points on it, in front of it, behind it, and where no frame reads, land in their classes; a
+    second frame that reads farther (3 m) at the same pixels makes the behind points free space."""
+    from fmapping.camera import PinholeCamera
+
+    cam = PinholeCamera(fx=50.0, fy=50.0, cx=31.5, cy=23.5, width=64, height=48)
+    depth = np.zeros((48, 64))
+    depth[:, :32] = 2.0
+    eye = np.eye(4)
+    uu, vv = np.meshgrid(np.arange(4, 29, 4), np.arange(4, 45, 4))
+    uu, vv = uu.reshape(-1).astype(float), vv.reshape(-1).astype(float)
+
+    def at(u, v, z):  # points at camera depth z on the rays of pixels (u, v)
+        return np.c_[(u - cam.cx) / cam.fx * z, (v - cam.cy) / cam.fy * z, np.full(len(u), z)]
+
+    gt = at(uu, vv, 2.0)
+    on, front, back = gt + [0.01, 0.0, 0.0], at(uu, vv, 1.5), at(uu, vv, 2.5)
+    unseen = at(uu + 32, vv, 1.2)  # right half: no reading there
+    pred = np.concatenate([on, front, back, unseen])
+    n = len(gt)
+    d_ref = np.array([np.linalg.norm(gt - p, axis=1).min() for p in pred])  # brute force
+
+    r = M.error_sources(pred, gt, [(depth, eye)], cam, threshold=0.05)
+    assert r["n_pred"] == 4 * n
+    for name in ("near", "free", "behind", "unseen"):
+        assert r[name]["share"] == pytest.approx(25.0)
+    assert r["other"]["share"] == 0.0 and r["other"]["mean_cm"] is None
+    for k, name in enumerate(("near", "free", "behind", "unseen")):
+        part = d_ref[k * n:(k + 1) * n]
+        assert r[name]["mean_cm"] == pytest.approx(100 * part.mean(), rel=1e-9)
+        assert r[name]["error_share"] == pytest.approx(100 * part.sum() / d_ref.sum(), rel=1e-9)
+    assert r["accuracy_cm"] == pytest.approx(M.recon_metrics(pred, gt)["accuracy_cm"], rel=1e-9)
+    assert r["accuracy_seen_cm"] == pytest.approx(100 * d_ref[:3 * n].mean(), rel=1e-9)
+
+    farther = np.where(depth > 0, 3.0, 0.0)
+    r2 = M.error_sources(pred, gt, [(depth, eye), (farther, eye)], cam, threshold=0.05)
+    assert r2["behind"]["share"] == 0.0 and r2["free"]["share"] == pytest.approx(50.0)
+    with pytest.raises(ValueError, match="does not match the camera"):
+        M.error_sources(pred, gt, [(depth[:, :10], eye)], cam)
+
+
 def test_empty_prediction_is_not_a_crash():
     r = M.recon_metrics(np.zeros((0, 3)), _plane(100, 1.0, 0))
     assert r["accuracy_cm"] == math.inf and r["completion_cm"] == math.inf
