@@ -184,15 +184,19 @@ SEVEN_SCENES_DEPTH_CAMERA = (585.0, 585.0, 320.0, 240.0, 640, 480)
 SEVEN_SCENES_GT_EVERY = 4
 
 
-def error_breakdown(out: Path, data: Path, max_frames: Optional[int], align: Optional[tuple] = None) -> Optional[dict]:
-    """:func:`fmapping.metrics.error_sources` of ``out/map.ply`` (moved by ``align`` first) against the 7-Scenes
-    folder ``data``: which points the GT depth frames saw as empty space, behind a surface, or not at all."""
+def error_breakdown(out: Path, data: Path, max_frames: Optional[int], align: Optional[tuple] = None,
+                    gt_ply: Optional[Path] = None, depth_camera=None) -> Optional[dict]:
+    """:func:`fmapping.metrics.error_sources` of ``out/map.ply`` (moved by ``align`` first) against the GT cloud
+    (default the 7-Scenes folder's ``gt_points.ply``) and every 4th depth frame of ``data`` seen through
+    ``depth_camera`` (default 7-Scenes' depth camera; a synthetic room's depth is its colour camera's): which
+    points the GT depth frames saw as empty space, behind a surface, or not at all."""
     from fmapping.camera import PinholeCamera
     from fmapping.datasets import open_dataset
     from fmapping.metrics import ERROR_SOURCES, error_sources
     from fmapping.ply import read_ply
 
-    ply, gt_ply = out / "map.ply", data / "gt_points.ply"
+    ply = out / "map.ply"
+    gt_ply = data / "gt_points.ply" if gt_ply is None else gt_ply
     if not ply.is_file() or not gt_ply.is_file():
         return None
     pts = read_ply(ply).points.astype(np.float64)
@@ -206,7 +210,8 @@ def error_breakdown(out: Path, data: Path, max_frames: Optional[int], align: Opt
              if ds.gt_poses[i] is not None and ds[i].depth is not None]
     if not views:  # the long clip has no depth files
         return None
-    r = error_sources(pts, read_ply(gt_ply).points, views, PinholeCamera(*SEVEN_SCENES_DEPTH_CAMERA))
+    cam = PinholeCamera(*SEVEN_SCENES_DEPTH_CAMERA) if depth_camera is None else depth_camera
+    r = error_sources(pts, read_ply(gt_ply).points, views, cam)
     flat = {"accuracy_seen_cm": r["accuracy_seen_cm"]}
     for name in ERROR_SOURCES:
         flat.update({f"{name}_pct": r[name]["share"], f"{name}_mean_cm": r[name]["mean_cm"],
@@ -550,6 +555,8 @@ class Bench:
                  "points": st["summary"].get("points"), "psnr_heldout": st.get("psnr_heldout"), **window_seconds(st),
                  "aabb": st.get("aabb"),
                  **{k: (rec or {}).get(k) for k in ("accuracy_cm", "completion_cm", "completion_ratio")}}
+            r["error_sources"] = error_breakdown(out, data, None, gt_ply=Path(ds.meta["gt_visible_cloud"]),
+                                                 depth_camera=ds.camera)
             r["picture"] = self.picture(f"synth_map_s{seed}_{variant}", out,
                                         f"synthetic seed {seed} ({used}), map with "
                                         f"GT poses ({variant}): acc {_f(r['accuracy_cm'])} cm, ratio "
