@@ -579,9 +579,11 @@ def export_mesh(
     ``visibility_tol`` (relative) behind the rendered depth at its pixel (renders at
     1/``stride`` resolution). Faces with any unseen vertex are dropped. Returns
     vertices (V, 3) float64, faces (F, 3) int64 and vertex colours (V, 3) uint8 (the
-    field's colour at the vertex). ``should_stop`` is asked before each pose's test
-    (:mod:`fmapping.cancel`). ``grid_chunk``: grid nodes per field evaluation (:func:`field_opacity_grid`).
+    field's colour at the vertex; a view-dependent field's as seen from the nearest pose).
+    ``should_stop`` is asked before each pose's test (:mod:`fmapping.cancel`). ``grid_chunk``: grid nodes
+    per field evaluation (:func:`field_opacity_grid`).
     """
+    from scipy.spatial import cKDTree
     from skimage.measure import marching_cubes
 
     alpha, origin, spacing = field_opacity_grid(field, aabb, resolution, chunk=grid_chunk)
@@ -615,10 +617,17 @@ def export_mesh(
     faces = remap[faces]
     cols = np.zeros((len(verts), 3), np.uint8)
     if len(verts):
+        centres = np.stack([q[:3, 3] for q in plist]) if plist else np.zeros((1, 3))
         with torch.no_grad():
             out = []
             for s in range(0, len(verts), 65536):
-                x = torch.as_tensor(verts[s:s + 65536], dtype=field.dtype, device=field.device)
-                out.append(field.color(x).cpu().numpy())
+                v = verts[s:s + 65536]
+                x = torch.as_tensor(v, dtype=field.dtype, device=field.device)
+                vd = None
+                if field.cfg.view_dependent:  # seen from the nearest camera
+                    dv = v - centres[cKDTree(centres).query(v)[1]]
+                    dv /= np.maximum(np.linalg.norm(dv, axis=1, keepdims=True), 1e-12)
+                    vd = torch.as_tensor(dv, dtype=field.dtype, device=field.device)
+                out.append(field.color(x, vd).cpu().numpy())
         cols = np.clip(np.round(np.concatenate(out) * 255), 0, 255).astype(np.uint8)
     return verts, faces.astype(np.int64), cols

@@ -123,6 +123,32 @@ def test_opacity_grid_and_mesh_culled_to_views():
     assert len(f2) > 0 and v2[:, 2].max() < 2.05
 
 
+class ViewSlabField(SlabField):
+    """A slab whose colour depends only on the view direction: red = 0.5 + 0.5 x (its x component)."""
+
+    def __init__(self, slabs):
+        super().__init__(slabs)
+        self.cfg = FieldConfig(view_dependent=True).validate()
+
+    def color(self, xyz, viewdirs=None):
+        if viewdirs is None:
+            raise ValueError("view dependent: needs viewdirs")
+        v = viewdirs.to(torch.float32)
+        return torch.stack([0.5 + 0.5 * v[:, 0], torch.full_like(v[:, 0], 0.5), torch.full_like(v[:, 0], 0.5)], -1)
+
+
+def test_mesh_of_a_view_dependent_field_is_coloured_as_seen_from_the_nearest_camera():
+    field = ViewSlabField([(2.0, 0.1, (-1.5, 1.5), (-1.5, 1.5), None)])
+    poses = [look_forward(-1.0), look_forward(1.0)]
+    v, f, c = export_mesh(field, AABB, 61, poses, CAM, level=0.5, near=0.1, far=5.0)
+    assert len(f) > 20
+    centres = np.array([p[:3, 3] for p in poses])
+    nearest = centres[np.argmin(np.linalg.norm(v[:, None] - centres[None], axis=2), 1)]
+    d = (v - nearest) / np.linalg.norm(v - nearest, axis=1, keepdims=True)
+    np.testing.assert_allclose(c[:, 0], np.round(255 * (0.5 + 0.5 * d[:, 0])), atol=1)
+    assert c[:, 0].min() < 110 and c[:, 0].max() > 145  # both sides of each camera
+
+
 def test_exports_stop_between_views_when_asked():
     """``should_stop`` is asked once before each view: the export stops after as many views as
     it allowed (counted by the renders made), and runs to the same result when it never fires."""

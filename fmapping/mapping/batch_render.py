@@ -79,7 +79,10 @@ def render_batch(field, aabb: Tensor, cfg, origins: Tensor, dirs: Tensor, mode: 
         col_ray, col_sample = mask.nonzero(as_tuple=True)
         rgb = torch.zeros(n_rays, 3, dtype=alpha.dtype, device=alpha.device)
         if col_ray.numel() > 0:
-            c = field.color(origins[col_ray] + t_all[col_ray, col_sample, None] * dirs[col_ray])
+            vd = None  # a view-dependent field sees each ray's unit direction (as fmapping.render does)
+            if field.cfg.view_dependent:
+                vd = dirs[col_ray] / dnorm[col_ray, None].clamp_min(1e-12)
+            c = field.color(origins[col_ray] + t_all[col_ray, col_sample, None] * dirs[col_ray], vd)
             rgb = rgb.index_add(0, col_ray, out.weights[col_ray, col_sample, None] * c)
         out.rgb = rgb
     return out, (t_near, t_far, hit)
