@@ -618,14 +618,15 @@ def export_mesh(
     cols = np.zeros((len(verts), 3), np.uint8)
     if len(verts):
         centres = np.stack([q[:3, 3] for q in plist]) if plist else np.zeros((1, 3))
+        tree = cKDTree(centres) if field.cfg.view_dependent else None
         with torch.no_grad():
             out = []
             for s in range(0, len(verts), 65536):
                 v = verts[s:s + 65536]
                 x = torch.as_tensor(v, dtype=field.dtype, device=field.device)
                 vd = None
-                if field.cfg.view_dependent:  # seen from the nearest camera
-                    dv = v - centres[cKDTree(centres).query(v)[1]]
+                if tree is not None:  # a view-dependent field: seen from the nearest camera
+                    dv = v - centres[tree.query(v)[1]]
                     dv /= np.maximum(np.linalg.norm(dv, axis=1, keepdims=True), 1e-12)
                     vd = torch.as_tensor(dv, dtype=field.dtype, device=field.device)
                 out.append(field.color(x, vd).cpu().numpy())
