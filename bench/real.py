@@ -206,9 +206,11 @@ def error_breakdown(out: Path, data: Path, max_frames: Optional[int], align: Opt
         sc, rot, t = align
         pts = float(sc) * pts @ np.asarray(rot, np.float64).T + np.asarray(t, np.float64)
     ds = open_dataset(data, max_frames=max_frames)
-    views = [(ds[i].depth, ds.gt_poses[i]) for i in range(0, len(ds), SEVEN_SCENES_GT_EVERY)
-             if ds.gt_poses[i] is not None and ds[i].depth is not None]
-    if not views:  # the long clip has no depth files
+    if not ds.has_depth:  # the long clip has no depth files
+        return None
+    frames = [(ds[i], ds.gt_poses[i]) for i in range(0, len(ds), SEVEN_SCENES_GT_EVERY) if ds.gt_poses[i] is not None]
+    views = [(f.depth, pose) for f, pose in frames if f.depth is not None]
+    if not views:
         return None
     cam = PinholeCamera(*SEVEN_SCENES_DEPTH_CAMERA) if depth_camera is None else depth_camera
     r = error_sources(pts, read_ply(gt_ply).points, views, cam)
