@@ -154,12 +154,14 @@ def main(argv=None) -> int:
     import torch
 
     from fmapping.datasets import open_dataset
-    from fmapping.runtime import limit_blas_threads
+    from fmapping.runtime import limit_blas_threads, retain_freed_memory, single_malloc_arena
     from mono_variants import make_configs
     from report import cpu_model
 
     torch.set_num_threads(1)  # as the tracker service
     limit_blas_threads(1)
+    retain_freed_memory()
+    single_malloc_arena()
     data = Path(a.data) if a.data else None
     if data is None:
         from fmapping.synthetic import generate_scene

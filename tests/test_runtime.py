@@ -114,3 +114,83 @@ def test_release_free_memory_gives_the_heaps_free_pages_back():
     if ok == "0":
         pytest.skip("not glibc: malloc_trim unavailable")
     assert float(before) - float(after) > 80, out.stdout
+
+
+_ARENAS = """
+import ctypes, sys, tempfile, threading
+from fmapping.runtime import single_malloc_arena
+libc = ctypes.CDLL(None)
+if not hasattr(libc, "malloc_info") or (sys.argv[1] == "single" and not single_malloc_arena()):
+    print(-1); raise SystemExit
+def work():  # a thread that allocates (blocks over pymalloc's 512 bytes go to malloc), as zenoh's and the BA's do
+    keep = [bytearray(100_000) for _ in range(50)]
+    del keep
+ts = [threading.Thread(target=work) for _ in range(3)]
+for t in ts: t.start()
+for t in ts: t.join()
+libc.fopen.restype = ctypes.c_void_p
+libc.fopen.argtypes = [ctypes.c_char_p, ctypes.c_char_p]
+libc.fclose.argtypes = [ctypes.c_void_p]
+libc.malloc_info.argtypes = [ctypes.c_int, ctypes.c_void_p]
+path = tempfile.mktemp()
+f = libc.fopen(path.encode(), b"w")
+libc.malloc_info(0, f)
+libc.fclose(f)
+print(open(path).read().count("<heap nr="))
+"""
+
+
+def _heaps(mode: str) -> int:
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, "-c", _ARENAS, mode], capture_output=True, text=True, check=True,
+                         cwd=root, env={**os.environ, "PYTHONPATH": str(root)})
+    return int(out.stdout.strip().splitlines()[-1])
+
+
+def test_single_malloc_arena_keeps_the_threads_allocations_in_one_heap():
+    """glibc's malloc_info lists one heap per arena: threads that allocate get heaps of their own, unless
+    single_malloc_arena() was called before they started."""
+    if _heaps("default") < 0:
+        pytest.skip("not glibc: malloc_info unavailable")
+    assert _heaps("default") >= 2  # the threads' own arenas (seen: 4 with 3 threads)
+    assert _heaps("single") == 1
+
+
+_BA_WORKER = """
+import sys
+import numpy as np
+import fmapping.tracking.mono.ba_thread as bt
+from fmapping.runtime import retain_freed_memory
+retain_freed_memory()  # as the tracker service: freed memory stays for reuse
+def rss_mb():
+    return int([l for l in open("/proc/self/status") if l.startswith("VmRSS")][0].split()[1]) / 1024
+def solve(camera, prob):  # stands in for a loop's bundle adjustment: 96 MiB of temporaries, freed at the end
+    tmp = [np.ones(1 << 20) for _ in range(12)]
+    del tmp
+    return "solved"
+bt.solve_ba_problem = solve
+worker = bt.BackgroundBA(None)
+before = rss_mb()
+worker.submit(None, release_memory=sys.argv[1] == "release")
+assert worker.take(wait=True) == (None, "solved")
+print(before, rss_mb())
+"""
+
+
+def test_the_ba_worker_hands_a_solves_freed_memory_back():
+    """With freed memory retained (the tracker service), a solve's temporaries stay resident after it unless
+    the worker releases them (a loop closure's problem, ``MonoConfig.ba_release_memory``)."""
+    if not Path("/proc/self/status").exists():
+        pytest.skip("no /proc here")
+    root = Path(__file__).resolve().parents[1]
+
+    def grown(mode: str) -> float:
+        out = subprocess.run([sys.executable, "-c", _BA_WORKER, mode], capture_output=True, text=True, check=True,
+                             cwd=root, env={**os.environ, "PYTHONPATH": str(root)})
+        before, after = (float(x) for x in out.stdout.split())
+        return after - before
+
+    kept, released = grown("keep"), grown("release")
+    if kept < 48:
+        pytest.skip(f"the allocator here returned the temporaries by itself ({kept:.0f} MB kept)")
+    assert released < 16, (kept, released)

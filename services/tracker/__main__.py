@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from fmapping.runtime import limit_blas_threads, retain_freed_memory
+from fmapping.runtime import limit_blas_threads, retain_freed_memory, single_malloc_arena
 from services.core_support import MIB
 from services.process import (FirstMessage, add_first_message_arg, run_main, service_parser,
                               set_torch_threads, setup_logging)
@@ -64,6 +64,7 @@ def main(argv=None, session=None, keys=None) -> int:
     logging.getLogger("fmapping.tracker").info("torch threads: %d", threads)
     retain_freed_memory()  # the numpy bundle adjustment: reuse freed temporaries, and one BLAS thread next
     limit_blas_threads(1)  # to the other services on the same cores (fmapping.runtime)
+    single_malloc_arena()  # before zenoh's threads: one heap, not one retained peak per thread
     cfg = load_tracker_config(args.config)
     opts = TrackerServiceOptions(max_buffer=args.max_buffer, use_depth=args.use_depth, frontend=args.frontend,
                                  anchor_source=args.anchor, state_path=args.state,

@@ -6,7 +6,11 @@ frames: as soon as it is ready, and at the latest before anything that changes t
 keyframe, a rescale, a re-initialisation) or reads refined poses. One problem is in flight at a time.
 
 Solving touches nothing shared (numpy / LAPACK release the GIL for most of it), so the only
-synchronisation is the hand-over of one finished result.
+synchronisation is the hand-over of one finished result. A problem submitted with ``release_memory``
+(a loop closure's, ``MonoConfig.ba_release_memory``) has the worker hand the C heap's free pages back
+after solving it (:func:`fmapping.runtime.release_free_memory`): the tracker service keeps freed memory
+for reuse, and a loop's problem would otherwise leave its peak (tens of MB) resident for the rest of
+the run. The small window problems keep their memory for the next one.
 """
 from __future__ import annotations
 
@@ -14,6 +18,7 @@ import threading
 from typing import Optional
 
 from fmapping.camera import PinholeCamera
+from fmapping.runtime import release_free_memory
 from fmapping.tracking.ba import BAResult
 from fmapping.tracking.mono.store import BAProblem, solve_ba_problem
 
@@ -35,7 +40,7 @@ class BackgroundBA:
     def ready(self) -> bool:
         return self._job is not None and not self._job[1].is_alive()
 
-    def submit(self, prob: BAProblem) -> None:
+    def submit(self, prob: BAProblem, release_memory: bool = False) -> None:
         if self._job is not None:
             raise RuntimeError("BackgroundBA.submit while a bundle adjustment is in flight: take it first")
         box: dict = {}
@@ -45,6 +50,8 @@ class BackgroundBA:
                 box["result"] = solve_ba_problem(self.camera, prob)
             except Exception as e:  # noqa: BLE001 - handed to the taker, raised there
                 box["error"] = e
+            if release_memory:
+                release_free_memory()
 
         t = threading.Thread(target=work, name="fmapping-ba", daemon=True)
         self._job = (prob, t, box)

@@ -46,6 +46,11 @@ class MonoConfig:
     # a keyframe then costs its frame ~5 ms instead of ~150 ms. The merge point depends on timing, so results
     # vary from run to run; off for the offline runs, on in the tracker service at a camera's rate.
     ba_thread: bool = False
+    # ... and after a loop closure's BA the worker hands the C heap's free pages back (fmapping.runtime): the tracker
+    # service retains freed memory for reuse, so the loop's ~26 MB of temporaries stayed resident. Not after the
+    # window BAs: trimming after each of them looked slower (bench/tracker_realtime.py, 8 alternated runs: pose latency
+    # p95 median 0.80 s against 0.42 s without, worse in 6 of the 8 pairs; bench/results/tracker_memory/)
+    ba_release_memory: bool = True
     # ... and with it, while the worker solves a loop closure's bundle adjustment, a frame asking to become a
     # keyframe stays an ordinary one (tracked against the current keyframe) for up to this many tracked frames in
     # a row, instead of waiting for the worker on the frame path (MonoFrontend._defer_keyframe; 0: always wait) ...

@@ -113,7 +113,7 @@ class LoopClosing:
             graph_size = self.store.spread_about(kfs, old)
             prob = self.store.ba_problem(window=kfs, max_nfev=lc.loop_ba_max_nfev)
             if self._bg is not None and prob is not None:  # ba_thread: solved off the frame path
-                self._bg.submit(prob)
+                self._bg.submit(prob, release_memory=self.cfg.ba_release_memory)
                 self._loop_ba = PendingLoopBA(prob, kfs, old, graph_size, out)
                 out["ba_in_worker"] = True
             elif prob is not None:
