@@ -272,3 +272,78 @@ def test_mapper_core_refines_on_request_and_goes_on(dataset):
     assert core.ack == 11
     core.apply(P.Control("stop", {"reason": "end"}))
     assert core.finished and core.counters.get("updates_final") == 2  # the one asked for and the closing one
+
+
+def test_the_mapper_takes_the_sources_final_poses_before_its_closing_stage(room320):
+    """At the stop the tracker still sends its last poses: a bundle adjustment merged at the end moves frames the
+    mapper has integrated. ``await_source_final`` takes them (and frames queued behind the stop) until the tracker
+    reports done, so that the closing stage maps on them; a source that never says done is waited for at most the
+    timeout, one that never reported a status not at all."""
+    from fmapping.datasets import open_dataset
+    from fmapping.geometry import se3_exp_np
+    from services.core_support import Counters
+    from services.mapper.core import MapperCore, MapperServiceOptions, await_source_final
+
+    ds = open_dataset(room320)
+    n, late = 16, 10
+    drift = se3_exp_np(np.array([0.03, -0.02, 0.01, 0.0, 0.02, 0.0]))  # 3.7 cm and 1.1 deg off, frames >= late
+    now = [0.0]
+
+    def make() -> MapperCore:
+        opts = MapperServiceOptions(pose_source="tracker", points_interval=1e9, checkpoint_every=0, pose_timeout=0)
+        core = MapperCore(small_cfg(final_global_iters=2), opts, counters=Counters(), clock=lambda: now[0])
+        for k in range(n - 1):  # frame n - 1 comes after the stop, behind it in the inbox
+            c2w = ds[k].c2w @ drift if k >= late else ds[k].c2w
+            core.apply(P.Pose(seq=k, timestamp=float(ds[k].timestamp), c2w=c2w, source="tracker"))
+            core.apply(P.frame_from_dataset(ds[k], seq=k, with_depth=False))
+        return core
+
+    def inbox(items, late_after: int = 10**9, delay: float = 0.0):
+        """get(timeout) over ``items``; those from index ``late_after`` on arrive ``delay`` fake seconds late."""
+        start, taken = now[0], [0]
+
+        def get(timeout):
+            if items:
+                due = start + (delay if taken[0] >= late_after else 0.0)
+                if due <= now[0] + timeout:
+                    now[0] = max(now[0], due)
+                    taken[0] += 1
+                    return items.pop(0)
+            now[0] += timeout  # the fake clock runs while nothing comes
+            return None
+        return get
+
+    def status(state):
+        return ("status", ("status/tracker", P.Status(service="tracker", seq=9, state=state)))
+
+    core = make()
+    core.on_source_status(P.Status(service="tracker", seq=8, state="running"))
+    mapped = list(core.seq_of_fid)
+    assert set(range(late, n - 1)) <= set(mapped)
+    last = n - 1
+    items = [("end", ("control", P.Control("stop", {"reason": "end"})))]  # a second stop: dropped
+    items += [("poses", ("poses/tracker", P.Pose(seq=k, timestamp=float(ds[k].timestamp), c2w=ds[k].c2w,
+                                                 source="tracker"))) for k in range(late, n)]
+    items += [("frames", ("frames", P.frame_from_dataset(ds[last], seq=last, with_depth=False))), status("done")]
+    items[-4:] = items[-2:] + items[-4:-2]  # the status overtook the last two poses (seen in fmapping up)
+    out = []
+    get = inbox(items, late_after=len(items) - 2, delay=0.2)  # ... and came 0.2 s after it
+    assert await_source_final(get, core, out.extend, timeout=5.0, clock=lambda: now[0]) and not items
+    assert core.counters.get("stops_while_ending") == 1
+    poses = core.mapper.frame_poses()
+    for fid, seq in enumerate(core.seq_of_fid):  # the moved frames carry the source's final poses
+        np.testing.assert_allclose(poses[fid], ds[seq].c2w, atol=1e-5)
+    assert last in core.seq_of_fid or last in core.frames  # the frame behind the stop was taken in
+    core.apply(P.Control("stop", {"reason": "end"}))
+    assert core.finished and core.counters.get("frames_without_pose", 0) == 0
+
+    # a source that stays silent: at most the timeout (fake seconds), then the closing goes ahead
+    silent = make()
+    silent.on_source_status(P.Status(service="tracker", seq=8, state="running"))
+    t0 = now[0]
+    assert not await_source_final(inbox([]), silent, lambda o: None, timeout=3.0, clock=lambda: now[0])
+    assert 3.0 <= now[0] - t0 < 3.5
+    # a source without a status (GT, an external producer): nothing to wait for
+    plain = MapperCore(small_cfg(), MapperServiceOptions(pose_source="external"), counters=Counters())
+    t0 = now[0]
+    assert await_source_final(inbox([]), plain, lambda o: None, timeout=3.0, clock=lambda: now[0]) and now[0] == t0

@@ -19,7 +19,9 @@ import time
 from fmapping import protocol as P
 from fmapping.cancel import Cancelled
 from services.core_support import MIB
-from services.mapper.core import POSE_SOURCES, MapperCore, MapperServiceOptions, load_mapper_config
+from services.mapper.core import (
+    POSE_SOURCES, MapperCore, MapperServiceOptions, await_source_final, load_mapper_config,
+)
 from services.mapper.intake import FRAME_BYTES, FRAME_CAPACITY, book_for, frame_rank
 from services.process import (FirstMessage, add_first_message_arg, available_cpus, run_main, service_parser,
                               set_torch_threads, setup_logging)
@@ -66,6 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stream-idle", type=float, default=2.0,
                    help="... while frames keep coming: once none has arrived for this many seconds (the stream "
                         "ended or paused), every posed frame waiting is mapped")
+    p.add_argument("--source-final-timeout", type=float, default=10.0,
+                   help="at the stop, wait at most this long for the pose source's last poses (a tracker's final "
+                        "bundle adjustment) before the closing refinement (a source without a status: no wait)")
     p.add_argument("--device", default=None, help="torch device (default: the config's, 'auto')")
     p.add_argument("--threads", type=int, default=0,
                    help="torch threads (0 = auto: half the CPUs this process may use, at least 1)")
@@ -161,6 +166,9 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args, book=None) -> int
                 if channel in ("end", "control") and msg.command == "stop":
                     report("finishing")
                     svc.publish_status()
+                    if not await_source_final(svc.inbox.get, core, publish, args.source_final_timeout):
+                        svc.log.warning("the pose source (%s) did not report done within %.0f s of the stop: "
+                                        "closing with the poses at hand", opts.pose_source, args.source_final_timeout)
                 publish(core.on_source_status(msg) if channel == "status" else core.apply(msg))
             publish(core.tick())
         except Cancelled:
