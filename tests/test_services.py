@@ -814,6 +814,10 @@ def test_recorder_writes_trajectories_and_points(tmp_path):
         c2w[:3, 3] = [i, 2 * i, 0.5]
         rec.on_pose(P.Pose(seq=i, timestamp=10.0 + i, c2w=c2w, source="tracker"))
         rec.on_pose(P.Pose(seq=i, timestamp=10.0 + i, c2w=np.eye(4), source="gt"))
+    # answers without a pose (quality 0, identity c2w: a frame skipped or lost) are not poses: frame 1 keeps its
+    # pose, frame 3 gets none (a TUM file with them put frame 10 of a 30-fps run 1.8 m off)
+    rec.on_pose(P.Pose(seq=1, timestamp=11.0, c2w=np.eye(4), source="tracker", quality=0.0))
+    rec.on_pose(P.Pose(seq=3, timestamp=13.0, c2w=np.eye(4), source="tracker", quality=0.0))
     pts = rng.standard_normal((30, 3)).astype(np.float32)
     rec.on_points(P.PointsSnapshot(version=2, points=pts, colors=np.full((30, 3), 7, np.uint8)))
     rec.on_points(P.PointsSnapshot(version=1, points=pts[:3], colors=np.zeros((3, 3), np.uint8)))  # older: ignored
@@ -822,6 +826,7 @@ def test_recorder_writes_trajectories_and_points(tmp_path):
     np.testing.assert_allclose(ts, [10, 11, 12])
     np.testing.assert_allclose(c2w[:, :3, 3], [[0, 0, 0.5], [1, 2, 0.5], [2, 4, 0.5]], atol=1e-9)
     assert (tmp_path / "traj_gt.txt").is_file() and summary["poses"] == {"gt": 3, "tracker": 3}
+    assert summary["unposed_answers"] == 2
     ply = read_ply(tmp_path / "points.ply")
     np.testing.assert_allclose(ply.points, pts, atol=1e-6)
 

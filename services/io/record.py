@@ -63,6 +63,7 @@ class Recorder:
         self.poses: dict[str, dict[int, tuple[float, np.ndarray]]] = {}
         self.points: Optional[P.PointsSnapshot] = None
         self.rejected: dict[str, int] = {}  # reason -> count
+        self.unposed = 0  # answers without a pose (quality 0), not written
         self.last_rejection = ""
         self.earlier: dict[str, dict[float, np.ndarray]] = {}  # --append: source -> {timestamp: c2w} on disk
 
@@ -82,10 +83,15 @@ class Recorder:
         return False
 
     def on_pose(self, pose: P.Pose) -> bool:
-        """Keep ``pose`` unless its frame number is implausible; False (counted) when refused."""
+        """Keep ``pose`` unless its frame number is implausible; False (counted) when refused. An answer
+        without a pose (``quality`` 0: a frame skipped or lost, its ``c2w`` meaningless) is not written:
+        counted as ``unposed_answers``, and a usable pose the frame had stays."""
         why = seq_problem(pose, self.played)
         if why:
             return self._reject("rejected_poses", why)
+        if pose.quality is not None and not pose.quality > 0:
+            self.unposed += 1
+            return True
         d = self.poses.setdefault(pose.source, {})
         if len(d) >= self.max_poses and pose.seq not in d:
             d.pop(next(iter(d)))
@@ -137,6 +143,7 @@ class Recorder:
         summary["unplayed_poses"] = unplayed
         summary["played"] = self.played
         summary["rejected"] = dict(self.rejected)
+        summary["unposed_answers"] = self.unposed
         write_json_atomic(self.out / "record.json", summary)
         return summary
 
@@ -150,6 +157,7 @@ def handle_message(svc: Service, rec: Recorder, peers: Peers, channel: str, key:
         msg = _decoded(svc, data, P.Pose, key)
         if msg is not None and _kept(svc, rec, rec.on_pose(msg)):
             svc.counters.inc(f"poses_{msg.source}")
+            svc.counters.set("unposed_answers", rec.unposed)
             svc.status.update(frame_seq=msg.seq)
     elif channel == "points":
         msg = _decoded(svc, data, P.PointsSnapshot, key)
