@@ -17,8 +17,8 @@ The ``fmapping`` CLI retains freed memory; the tracker service does both at star
 no-ops (returning False) where the library in question is absent.
 
 **Trimming.** :func:`release_free_memory` hands the heap's free pages back after each mapper update
-(once per update, not per temporary: the retained reuse within an update stays), and after each of the
-tracker's bundle adjustments in its worker thread.
+(once per update, not per temporary: the retained reuse within an update stays), and the tracker's worker
+after a loop closure's bundle adjustment (``MonoConfig.ba_release_memory``).
 
 **Arenas.** glibc gives each thread that allocates its own heap ("arena", up to 8 per core). In the tracker
 service the frames arrive on zenoh's threads and the bundle adjustment runs in a worker, so each keeps a heap

@@ -343,6 +343,9 @@ def test_the_mapper_takes_the_sources_final_poses_before_its_closing_stage(room3
     t0 = now[0]
     assert not await_source_final(inbox([]), silent, lambda o: None, timeout=3.0, clock=lambda: now[0])
     assert 3.0 <= now[0] - t0 < 3.5
+    t0 = now[0]  # a signal ends the wait at once
+    assert not await_source_final(inbox([]), silent, lambda o: None, timeout=3.0, clock=lambda: now[0],
+                                  should_stop=lambda: True) and now[0] == t0
     # a source without a status (GT, an external producer): nothing to wait for
     plain = MapperCore(small_cfg(), MapperServiceOptions(pose_source="external"), counters=Counters())
     t0 = now[0]

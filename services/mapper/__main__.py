@@ -166,7 +166,11 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args, book=None) -> int
                 if channel in ("end", "control") and msg.command == "stop":
                     report("finishing")
                     svc.publish_status()
-                    if not await_source_final(svc.inbox.get, core, publish, args.source_final_timeout):
+                    # the stream's end or a stop to all: the source stops too and sends its last poses first
+                    to_all = msg.args.get("target") in (None, "", "all")
+                    if to_all and not await_source_final(svc.inbox.get, core, publish, args.source_final_timeout,
+                                                         should_stop=lambda: svc.shutdown.requested) \
+                            and not svc.shutdown.requested:
                         svc.log.warning("the pose source (%s) did not report done within %.0f s of the stop: "
                                         "closing with the poses at hand", opts.pose_source, args.source_final_timeout)
                 publish(core.on_source_status(msg) if channel == "status" else core.apply(msg))

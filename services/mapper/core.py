@@ -676,7 +676,8 @@ def load_mapper_config(path=None, overrides: Optional[dict] = None):
 
 
 def await_source_final(get: Callable[[float], Optional[tuple]], core: MapperCore, publish: Callable[[list], None],
-                       timeout: float, clock: Callable[[], float] = time.monotonic, quiet: float = 0.5) -> bool:
+                       timeout: float, clock: Callable[[], float] = time.monotonic, quiet: float = 0.5,
+                       should_stop: Callable[[], bool] = lambda: False) -> bool:
     """At the stream's end, before the closing stage: take the inbox's items (``get(timeout)`` -> (channel,
     (key, message)) or None) until the pose source reports it is done, at most ``timeout`` seconds. The
     tracker answers the stop with its last poses: the frames it still held and the ones a bundle adjustment
@@ -685,20 +686,22 @@ def await_source_final(get: Callable[[float], Optional[tuple]], core: MapperCore
     1.9 cm from the tracker's final ones, median). Its status can overtake the last of them (seen: 233 of
     745 came after it), so once it says done the items are taken until none has come for ``quiet``
     seconds, within the same ``timeout``. Frames still queued behind the stop are taken too. A second
-    stop is dropped; other controls apply. Returns True when the source settled in time."""
+    stop is dropped; other controls apply. ``should_stop()`` (a signal) ends the wait at once. Returns True
+    when the source settled in time."""
     end = clock() + timeout
-    while not core.source_settled and clock() < end:
+    while not core.source_settled and clock() < end and not should_stop():
         item = get(0.1)
         if item is not None:
             _take(core, publish, item)
     settled = core.source_settled
     # a source without a status, or one that never settled: only what is queued already
     wait = quiet if settled and core.source_state is not None else 0.0
-    while True:
+    while not should_stop():
         item = get(max(0.0, min(wait, end - clock())))
         if item is None:
             return settled
         _take(core, publish, item)
+    return settled
 
 
 def _take(core: MapperCore, publish: Callable[[list], None], item: tuple) -> None:
