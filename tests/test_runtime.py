@@ -27,12 +27,16 @@ print(faults(8))
 """
 
 
-def _faults_per_alloc(mode: str) -> float:
-    """In a fresh process (the heap's state depends on everything the process did before)."""
+def _fresh(code: str, *args: str) -> str:
+    """Standard output of ``code`` run in a fresh process (the heap's state depends on everything the process
+    did before)."""
     root = Path(__file__).resolve().parents[1]
-    out = subprocess.run([sys.executable, "-c", _FAULTS, mode], capture_output=True, text=True, check=True,
-                         cwd=root, env={**os.environ, "PYTHONPATH": str(root)})
-    return float(out.stdout.strip().splitlines()[-1])
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, check=True, cwd=root,
+                          env={**os.environ, "PYTHONPATH": str(root)}).stdout
+
+
+def _faults_per_alloc(mode: str) -> float:
+    return float(_fresh(_FAULTS, mode).strip().splitlines()[-1])
 
 
 def test_retained_memory_is_reused_without_page_faults():
@@ -107,13 +111,11 @@ def test_release_free_memory_gives_the_heaps_free_pages_back():
     release_free_memory() returns them: the resident size falls by most of it."""
     if not Path("/proc/self/status").exists():
         pytest.skip("no /proc here")
-    root = Path(__file__).resolve().parents[1]
-    out = subprocess.run([sys.executable, "-c", _TRIM], capture_output=True, text=True, check=True, cwd=root,
-                         env={**os.environ, "PYTHONPATH": str(root)})
-    ok, before, after = out.stdout.split()
+    out = _fresh(_TRIM)
+    ok, before, after = out.split()
     if ok == "0":
         pytest.skip("not glibc: malloc_trim unavailable")
-    assert float(before) - float(after) > 80, out.stdout
+    assert float(before) - float(after) > 80, out
 
 
 _ARENAS = """
@@ -141,10 +143,7 @@ print(open(path).read().count("<heap nr="))
 
 
 def _heaps(mode: str) -> int:
-    root = Path(__file__).resolve().parents[1]
-    out = subprocess.run([sys.executable, "-c", _ARENAS, mode], capture_output=True, text=True, check=True,
-                         cwd=root, env={**os.environ, "PYTHONPATH": str(root)})
-    return int(out.stdout.strip().splitlines()[-1])
+    return int(_fresh(_ARENAS, mode).strip().splitlines()[-1])
 
 
 def test_single_malloc_arena_keeps_the_threads_allocations_in_one_heap():
@@ -182,12 +181,8 @@ def test_the_ba_worker_hands_a_solves_freed_memory_back():
     the worker releases them (a loop closure's problem, ``MonoConfig.ba_release_memory``)."""
     if not Path("/proc/self/status").exists():
         pytest.skip("no /proc here")
-    root = Path(__file__).resolve().parents[1]
-
     def grown(mode: str) -> float:
-        out = subprocess.run([sys.executable, "-c", _BA_WORKER, mode], capture_output=True, text=True, check=True,
-                             cwd=root, env={**os.environ, "PYTHONPATH": str(root)})
-        before, after = (float(x) for x in out.stdout.split())
+        before, after = (float(x) for x in _fresh(_BA_WORKER, mode).split())
         return after - before
 
     kept, released = grown("keep"), grown("release")
