@@ -31,7 +31,8 @@ Every ``--interval`` seconds it records (time series, ``t`` = seconds since the 
 * ``dropped``: per service, the ``dropped_*`` inbox counters plus the frames a service
   gave up on (tracker ``frames_skipped`` / ``frames_lost``; mapper ``frames_without_pose``,
   ``frames_skipped``);
-* ``rss_mb``: resident memory of every child process (psutil, else /proc/<pid>/status).
+* ``rss_mb``: resident memory of every child process (psutil, else /proc/<pid>/status); the summary's
+  ``rss_mb_growth`` is each service's from frame 200 to the end of playback (issue 18: within 10 %).
 
 At the end of each run: the final counters, per-frame latencies (tracker pose - publish,
 first mapper pose - publish; the tracker's also frame by frame: ``frames`` in the JSON, dots in the
@@ -102,6 +103,27 @@ def _rss_proc(pid: int) -> Optional[float]:
     except (OSError, ValueError, IndexError):
         return None
     return None
+
+
+#: Issue 18's memory measure: each service's resident size from this frame on (flat to within 10 %).
+RSS_FROM_FRAME = 200
+
+
+def rss_growth(rows: list[dict], from_frame: int, until_t) -> dict:
+    """Per service: RSS (MB) at the first sample once ``from_frame`` frames were published, the largest after
+    it up to time ``until_t`` (the end of playback; None: the whole run) and the growth in %. Empty when the
+    run never published ``from_frame`` frames."""
+    start = next((i for i, r in enumerate(rows) if r.get("published", -1) >= from_frame), None)
+    if start is None:
+        return {}
+    span = [r for r in rows[start:] if until_t is None or r["t"] <= until_t] or [rows[start]]
+    out = {}
+    for name, at in rows[start].get("rss_mb", {}).items():
+        vals = [r["rss_mb"][name] for r in span if r.get("rss_mb", {}).get(name) is not None]
+        if at and vals:
+            out[name] = {"at_frame": round(at, 1), "max_after": round(max(vals), 1),
+                         "growth_pct": round(100.0 * (max(vals) / at - 1.0), 1)}
+    return out
 
 
 def child_rss_mb() -> dict[str, float]:
@@ -387,6 +409,7 @@ def summarize(fps: float, rows: list[dict], mon: Monitor, out: Path, scene: Path
     end_row = next((r for r in rows if play_end is not None and r["t"] >= play_end), None)
     if end_row:
         s["rss_mb_end_of_playback"] = end_row.get("rss_mb", {})
+    s["rss_mb_growth"] = rss_growth(rows, RSS_FROM_FRAME, play_end)
     done_t = next((r["t"] for r in rows if r.get("mapper_state") == "done"), None)
     s["mapper"]["done_after_playback_s"] = round(done_t - play_end, 1) if done_t is not None and play_end else None
     s["loadavg1"] = _stats([r.get("loadavg1") for r in rows])
@@ -664,7 +687,7 @@ def main(argv=None) -> int:
     out.write_text(dumps(results) + "\n")
     plot(results, out.with_suffix(".png"))
     print(json.dumps({f"{r['fps']:g}": {k: r["summary"].get(k) for k in ("tracker", "mapper", "map", "map_sim3_aligned",
-                                                                       "rss_mb_peak")}
+                                                                       "rss_mb_peak", "rss_mb_growth")}
                       for r in results["runs"]}, indent=1, default=str))
     print(f"[system] wrote {out} and {out.with_suffix('.png')} in {results['total_seconds']} s", flush=True)
     return 0 if all(r["rc"] == 0 for r in results["runs"]) else 1

@@ -581,7 +581,7 @@ def export_mesh(
     vertices (V, 3) float64, faces (F, 3) int64 and vertex colours (V, 3) uint8 (the
     field's colour at the vertex; a view-dependent field's as seen from the nearest pose).
     ``should_stop`` is asked before each pose's test (:mod:`fmapping.cancel`). ``grid_chunk``: grid nodes
-    per field evaluation (:func:`field_opacity_grid`).
+    per field evaluation (:func:`field_opacity_grid`), and vertices per colour evaluation up to 65,536.
     """
     from scipy.spatial import cKDTree
     from skimage.measure import marching_cubes
@@ -621,8 +621,9 @@ def export_mesh(
         tree = cKDTree(centres) if field.cfg.view_dependent else None
         with torch.no_grad():
             out = []
-            for s in range(0, len(verts), 65536):
-                v = verts[s:s + 65536]
+            step = max(1, min(int(grid_chunk), 65536))
+            for s in range(0, len(verts), step):
+                v = verts[s:s + step]
                 x = torch.as_tensor(v, dtype=field.dtype, device=field.device)
                 vd = None
                 if tree is not None:  # a view-dependent field: seen from the nearest camera

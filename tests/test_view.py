@@ -394,3 +394,35 @@ def test_saved_recording_of_an_rgb_only_run_with_a_field_has_rendered_but_no_dat
                 "/world/camera/image"):
         assert ent in text, ent
     assert "/world/camera/image/depth" not in text
+
+
+_WARM_UP = r"""
+import sys
+from services.io import view
+class Rec:
+    def __init__(self):
+        self.logged = []
+    def log(self, entity, *a, **k):
+        self.logged.append(entity)
+    def set_time(self, *a, **k):
+        pass
+MODULES = ("torch", "scipy.spatial", "skimage.measure")
+rec, errors = Rec(), []
+v = view.Viewer(rec, background=True, on_error=errors.append, torch_threads=1)
+before = [m for m in MODULES if m in sys.modules]
+v.warm_up()
+assert v.worker.wait_idle(120)
+import torch
+print(before, [m for m in MODULES if m in sys.modules], torch.get_num_threads(), rec.logged, v.renders, v.meshes,
+      errors)
+"""
+
+
+def test_the_view_warms_its_previews_up_on_the_preview_thread_at_the_start_and_logs_nothing():
+    """The service takes the previews' one-time costs (torch, the mesh's scipy and scikit-image, the first
+    kernels: ~45 MB) before the run instead of at the first field snapshot mid-run. In a fresh process: the
+    warm-up imports what the previews use, sets the preview thread count, and logs and counts no preview."""
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, "-c", _WARM_UP], capture_output=True, text=True, check=True, cwd=root,
+                         env={**os.environ, "PYTHONPATH": str(root)}, timeout=300).stdout.strip().splitlines()[-1]
+    assert out == "[] ['torch', 'scipy.spatial', 'skimage.measure'] 1 ['world'] 0 0 []", out

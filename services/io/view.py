@@ -96,11 +96,14 @@ PREVIEW_DUTY = 0.2
 #: At most this many poses cull the live mesh (each one projects every vertex once).
 MESH_MAX_POSES = 100
 #: Rays per chunk of a preview render: render_image's default (32,768) takes a whole 160 x 120 preview
-#: (40 samples a ray) in one chunk, ~350 MB of temporaries; 1,024 rays: ~35 MB, the same image, no slower.
-PREVIEW_CHUNK = 1024
-#: Grid nodes per field evaluation of the live mesh: the default (262,144) takes a 64^3 grid at once,
-#: ~100 MB of temporaries; 32,768: ~20 MB, the same mesh, no slower.
-MESH_GRID_CHUNK = 32768
+#: (40 samples a ray) in one chunk, ~350 MB of temporaries. The view's resident size shows each preview's peak
+#: (bench/results/view_memory/): 1,024 rays peak at ~47 MB above the base, 256 at ~20 MB, the same image in the
+#: same time (0.56 s min, one thread).
+PREVIEW_CHUNK = 256
+#: Field evaluations per chunk of the live mesh (the grid's opacities and the vertices' colours): the default
+#: (262,144) takes a 64^3 grid at once, ~100 MB of temporaries; 32,768 peak at ~21 MB, 8,192 at ~10 MB (and the
+#: colours of 65,536 vertices at once at ~35 MB, of 8,192 at ~4 MB); the same mesh, no slower.
+MESH_GRID_CHUNK = 8192
 
 
 @dataclasses.dataclass
@@ -184,6 +187,37 @@ def field_mesh(field, rs: RenderSettings, camera, poses: list, resolution: int =
 
     return export_mesh(field, field.aabb, int(resolution), poses, camera, near=rs.near, far=rs.far,
                        grid_chunk=MESH_GRID_CHUNK)
+
+
+def warm_previews(width: int = 8, mesh_resolution: int = 8) -> None:
+    """One render ``width`` pixels wide (4:3) and one mesh of a small CP field, logged nowhere. The
+    previews' one-time costs (torch's first kernels on this thread, scipy's and scikit-image's imports
+    for the mesh: ~45 MB) are then taken when the view starts, not as a step in the middle of the run
+    at the first field snapshot (``bench/results/view_memory/``)."""
+    import torch
+
+    from fmapping.camera import PinholeCamera
+    from fmapping.field import FieldConfig, build_field
+
+    field = build_field(dataclasses.replace(FieldConfig(), resolution=8), torch.tensor([[-1.0] * 3, [1.0] * 3]))
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():  # a field with a surface to mesh whatever the initialisation
+        for p in field.parameters():
+            p.add_(0.5 * torch.randn(p.shape, generator=gen, dtype=p.dtype))
+    w = max(4, int(width))
+    cam = PinholeCamera(fx=float(w), fy=float(w), cx=(w - 1) / 2, cy=(w * 3 // 4 - 1) / 2, width=w, height=w * 3 // 4)
+    c2w = np.eye(4)
+    c2w[2, 3] = -2.0  # outside the box, looking into it (+z)
+    rs = RenderSettings(n_coarse=PREVIEW_SAMPLES[0], n_fine=PREVIEW_SAMPLES[1])
+    with torch.no_grad():
+        render_view(field, rs, cam, c2w)
+    field_mesh(field, rs, cam, [c2w], resolution=max(2, int(mesh_resolution)))
+
+
+#: The job that warms the previews up (:func:`warm_previews`) on the preview thread, and how long the
+#: service waits for it at the start (seconds; it goes on after that, the first preview then pays).
+WARM_UP = "warm-up"
+WARM_UP_TIMEOUT = 60.0
 
 
 @dataclasses.dataclass
@@ -418,6 +452,11 @@ class Viewer:
         except Exception as e:  # a bad snapshot must not stop the view
             self.on_error(e)
 
+    def warm_up(self) -> None:
+        """Take the previews' one-time costs now, on the thread that will render (:func:`warm_previews`);
+        a field snapshot submitted before it starts replaces it (that preview pays them instead)."""
+        self.submit(WARM_UP)
+
     def run_field_job(self, job: FieldJob) -> None:
         """Rebuild the field of ``job`` and log what it asks for: the rendered colour and depth at
         the frame's time under ``world/camera/rendered`` (next to the input image), the live mesh
@@ -437,6 +476,9 @@ class Viewer:
 
             torch.set_num_threads(self.torch_threads)
             self.torch_threads = 0
+        if job is WARM_UP:
+            warm_previews(self.render_width, self.mesh_resolution)
+            return
         field, rs = field_of_snapshot(job.snapshot)
         if job.render_c2w is not None:
             t0 = time.perf_counter()
@@ -634,11 +676,14 @@ def run(svc: Service, args, rec) -> int:
         svc.status.error(f"field preview: {e}")
         svc.log.warning("field preview failed: %s", e)
 
-    if args.render_every > 0 or args.mesh_every >= 0:
-        import torch  # noqa: F401  (the previews need it: ~190 MB, taken at the start instead of mid-run)
     view = Viewer(rec, args.primary, args.image_every, args.depth_every, args.jpeg_quality,
                   render_every=args.render_every, render_width=args.render_width, mesh_every=args.mesh_every,
                   mesh_resolution=args.mesh_resolution, background=True, on_error=preview_failed, torch_threads=1)
+    if args.render_every > 0 or args.mesh_every >= 0:
+        # torch (~190 MB) and the previews' first-run costs at the start, not as a step mid-run; waited for
+        # before subscribing so that the imports do not hold the bus's callbacks back
+        view.warm_up()
+        view.worker.wait_idle(WARM_UP_TIMEOUT)
     peers = Peers()
     wait_done = names(args.wait_done)
     for key, ch in ((svc.keys.frames, "frames"), (svc.keys.poses(), "poses"), (svc.keys.points, "points"),
