@@ -97,12 +97,12 @@ PREVIEW_DUTY = 0.2
 MESH_MAX_POSES = 100
 #: Rays per chunk of a preview render: render_image's default (32,768) takes a whole 160 x 120 preview
 #: (40 samples a ray) in one chunk, ~350 MB of temporaries. The view's resident size shows each preview's peak
-#: (bench/results/view_memory/): 1,024 rays peak at ~47 MB above the base, 256 at ~20 MB, the same image in the
-#: same time (0.56 s min, one thread).
+#: (bench/results/view_memory/): on a mapped field 1,024 rays peak at +58-61 MB, 256 at +16-17 MB, the same image
+#: in the same time (0.4-0.6 s, one thread).
 PREVIEW_CHUNK = 256
 #: Field evaluations per chunk of the live mesh (the grid's opacities and the vertices' colours): the default
-#: (262,144) takes a 64^3 grid at once, ~100 MB of temporaries; 32,768 peak at ~21 MB, 8,192 at ~10 MB (and the
-#: colours of 65,536 vertices at once at ~35 MB, of 8,192 at ~4 MB); the same mesh, no slower.
+#: (262,144) takes a 64^3 grid at once, ~100 MB of temporaries; the mesh of a mapped field peaks at +28-35 MB with
+#: 32,768 (and its vertices coloured 65,536 at a time), at +15-17 MB with 8,192; the same mesh, no slower.
 MESH_GRID_CHUNK = 8192
 
 
