@@ -254,8 +254,11 @@ def test_fuzz_500_malformed_messages_through_zenoh_to_a_running_mapper(dataset, 
 
 
 # ============================================================================ 2. overload
-OVERLOAD_FPS = 50.0  # the mapper below does ~4-5 frames/s on one thread here: playback ~10x faster
-OVERLOAD_SECONDS = 32.0  # long enough that an unbounded queue would outgrow the inbox ceiling (~70 MB here)
+OVERLOAD_FPS = 50.0  # the mapper below does ~4-8 frames/s on one thread here: playback ~10x faster
+# The mapper's inbox is set to 64 frames (--inbox-frames; 8 MB of these frames): it is full within ~2 s, before
+# the warm-up ends. With the default 512 frames it took ~12 s, and the test 32 s to outgrow it.
+OVERLOAD_INBOX = 64
+OVERLOAD_SECONDS = 20.0  # long enough that an unbounded queue would outgrow the bound (~50 MB here)
 WARMUP_SECONDS = 6.0
 
 
@@ -267,7 +270,7 @@ def test_overload_playback_faster_than_the_mapper_drops_frames_and_rss_stays_fla
     consumed + still queued), and the mapper's RSS stays within its documented ceiling after
     warm-up (it levels off once the inbox is full) while an unbounded queue would outgrow it."""
     from fmapping.synthetic import generate_scene
-    from services.mapper.__main__ import CAPACITIES, MAX_BYTES
+    from services.mapper.__main__ import MAX_BYTES
 
     scene = tmp_path / "scene"
     generate_scene(scene, seed=3, frames=16, size=(160, 120), max_cloud_points=2000, mesh_spacing=0.2)
@@ -275,7 +278,8 @@ def test_overload_playback_faster_than_the_mapper_drops_frames_and_rss_stays_fla
     cfg = mapper_yaml(tmp_path, iters_per_window=20)
     ep_m, ep_p = loopback_endpoint(), loopback_endpoint()
     mapper = Svc("mapper", ["services.mapper", "--poses", "gt", "--config", str(cfg), "--out", str(tmp_path / "out"),
-                            "--threads", "1", "--no-mesh", "--points-interval", "2"], tmp_path, ep_m, interval=0.25)
+                            "--threads", "1", "--no-mesh", "--points-interval", "2",
+                            "--inbox-frames", str(OVERLOAD_INBOX)], tmp_path, ep_m, interval=0.25)
     play = None
     try:
         mapper.wait_for(lambda s: s.get("state") == "running", 120, "mapper up")
@@ -311,9 +315,9 @@ def test_overload_playback_faster_than_the_mapper_drops_frames_and_rss_stays_fla
     thinned = int(c.get("frames_thinned", 0))
     # at most one frame waits for its pose
     assert consumed - processed - int(c.get("frames_without_pose", 0)) - thinned <= 1, c
-    assert queued <= CAPACITIES["frames"]  # the inbox capacity
-    # overloaded: most frames were not mapped (the mapper maps a few frames/s; measured 76 of 1,027: 388 evicted
-    # from the full inbox, 51 skipped behind, the rest still queued at the stop) and the inbox overflowed
+    assert queued <= OVERLOAD_INBOX  # the inbox capacity
+    # overloaded: most frames were not mapped (the mapper maps a few frames/s; measured 185-225 of 1,014-1,015:
+    # 676-742 evicted from the full inbox, 23-48 skipped behind, 64 still queued at the stop): the inbox overflowed
     assert processed < 0.5 * sent and dropped > 0, (sent, processed, dropped, thinned, queued)
     # memory: flat after warm-up
     warm = [s for s in samples if s[0] >= WARMUP_SECONDS]
@@ -327,7 +331,7 @@ def test_overload_playback_faster_than_the_mapper_drops_frames_and_rss_stays_fla
     # one checkpoint / snapshot in flight; its inbox fills up to its ceiling (CAPACITIES frames, the
     # mapper's keyframe-keeping intake); 24 MB for allocator and zenoh buffer slack
     processed_after = processed - int(warm[0][2].get("frames_processed", 0))
-    inbox_mb = min(CAPACITIES["frames"] * frame_bytes, MAX_BYTES["frames"]) / 2 ** 20
+    inbox_mb = min(OVERLOAD_INBOX * frame_bytes, MAX_BYTES["frames"]) / 2 ** 20
     bound_mb = 24 + processed_after / 2 * frame_bytes / 2 ** 20 * 2 + inbox_mb
     print(f"\n[overload] {OVERLOAD_SECONDS:.0f} s at {OVERLOAD_FPS:.0f} fps: play sent {sent}, "
           f"mapper received {received}, "

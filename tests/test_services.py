@@ -862,6 +862,18 @@ def test_service_entry_points_have_help():
         assert e.value.code == 0
 
 
+@pytest.mark.parametrize("bad", [["--inbox-frames", "0"], ["--inbox-mb", "0"], ["--inbox-mb", "nan"]])
+def test_the_mapper_refuses_an_inbox_that_holds_nothing(bad, capsys):
+    """An inbox ceiling of no frames or no bytes is a usage error naming the options, before any
+    session is opened."""
+    from services.mapper.__main__ import main
+
+    with pytest.raises(SystemExit) as e:
+        main(bad)
+    assert e.value.code == 2
+    assert "--inbox-frames must be >= 1 and --inbox-mb > 0" in capsys.readouterr().err
+
+
 def test_sigterm_during_a_mapping_window_stops_within_5_seconds(dataset, tmp_path):
     """The mapper gets SIGTERM while busy in its init stage: it aborts the update, writes its
     trajectory and exits within 5 s (the heartbeat thread keeps reporting while it is busy)."""

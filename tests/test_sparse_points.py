@@ -1,5 +1,7 @@
 """Sparse points from images + known poses (fmapping.sparse_points): ray intersection, the scene box of a
 synthetic room whose extent is known, state round trip; and the sparse depth term of the mapper."""
+import io
+
 import numpy as np
 import pytest
 import torch
@@ -153,14 +155,29 @@ def test_state_round_trip_continues_identically(room_frames):
     a = TrackTriangulator(cam, SparsePointsConfig(max_track=6))
     for i in range(10):
         a.add(i, views[i][0], c2w[i])
+    state = a.state_dict()
+    buf = io.BytesIO()
+    torch.save(state, buf)  # as a mapper checkpoint does, read back as it does
     b = TrackTriangulator(cam, SparsePointsConfig(max_track=6))
-    b.load_state_dict(a.state_dict())
-    for t in (a, b):
+    b.load_state_dict(torch.load(io.BytesIO(buf.getvalue()), weights_only=True))
+    # a checkpoint written before the packing (one tensor per observation, pose and frame) loads the same
+    legacy = dict(state)
+    legacy["obs"] = [[(int(f), torch.as_tensor(uv)) for f, uv in o] for o in a._obs]
+    legacy["poses"] = {int(k): torch.from_numpy(v.copy()) for k, v in a._poses.items()}
+    legacy["frame_obs"] = {int(k): (torch.from_numpy(i.copy()), torch.from_numpy(uv.copy()))
+                           for k, (i, uv) in a._frame_obs.items()}
+    del legacy["gain"]
+    c = TrackTriangulator(cam, SparsePointsConfig(max_track=6))
+    c.load_state_dict(legacy)
+    c._gain = a._gain  # the old form did not keep the exposure ratio
+    assert sum(len(o) for o in a._obs) > 100 and len(a._frame_obs) >= 5  # something to pack
+    for t in (a, b, c):
         for i in range(10, 16):
             t.add(i, views[i][0], c2w[i])
         t.flush()
-    np.testing.assert_array_equal(a.points, b.points)
-    np.testing.assert_array_equal(a.frame_depths(12)[1], b.frame_depths(12)[1])
+    for t in (b, c):
+        np.testing.assert_array_equal(a.points, t.points)
+        np.testing.assert_array_equal(a.frame_depths(12)[1], t.frame_depths(12)[1])
 
 
 # ------------------------------------------------------------------ the sparse depth term

@@ -1,6 +1,7 @@
 """``fmapping up``: the run itself (:func:`run_up`): check the inputs, then start the router and the
-services in order (:mod:`services.launcher.commands` writes their command lines), supervise them
-(:mod:`services.launcher.supervise`) and add the run's dataset and config to OUT/stats.json.
+services (at once in a secure run, in order in the open mesh; :mod:`services.launcher.commands` writes their
+command lines), supervise them (:mod:`services.launcher.supervise`) and add the run's dataset and config to
+OUT/stats.json.
 See :mod:`services.launcher` for the whole story."""
 from __future__ import annotations
 
@@ -219,11 +220,14 @@ def run_up(args) -> int:
             print(f"fmapping up: secure run: router on {creds.endpoint}, per-run credentials in {creds.folder} "
                   "(mode 0600), access control by role (--insecure: the open loopback mesh)", flush=True)
         procs["mapper"] = Proc("mapper", mapper_argv, out, env)
-        wait_ready([procs["mapper"]], opts.start_timeout)
+        if creds is None:  # the open mesh: the services started later connect to the mapper's listening port
+            wait_ready([procs["mapper"]], opts.start_timeout)
+        # a secure run: every service connects to the router alone, so they all start at once, play too (start-up
+        # is mostly imports, which then overlap on the cores); play sends its first frame once each has a status
         record_argv = service_command("services.io record", out=str(out / "record"), source=record_src,
                                       append=resuming, **net("record"), first_message_timeout=first_wait)
         procs["record"] = Proc("record", record_argv, out, env)
-        later = [procs["record"]]
+        later = [procs["mapper"], procs["record"]]
         view = view_mode(getattr(args, "view", None)) if opts.view else ""
         if view:
             uses_depth = bool(info["config"]["mapper"].get("use_depth"))
@@ -239,7 +243,8 @@ def run_up(args) -> int:
                 config=str(tracker_cfg) if tracker_cfg else None)
             procs["tracker"] = Proc("tracker", targv, out, env)
             later.append(procs["tracker"])
-        wait_ready(later, opts.start_timeout)
+        if creds is None:  # the open mesh: play connects to each of them
+            wait_ready(later, opts.start_timeout)
         wait_for = play_wait_for(poses, opts.view)
         play_start_timeout = opts.start_timeout
         if poses == "external":
@@ -255,7 +260,9 @@ def run_up(args) -> int:
             ack_from="mapper", wait_for=",".join(wait_for), start_timeout=play_start_timeout,
             resend_to=resend_to(poses, live), start_after="mapper" if resuming else None,
             no_depth=not play_sends_depth(poses, info["config"]["mapper"].get("use_depth")), **net("play"))
-        procs["play"] = Proc("play", play_argv, out, env)
+        procs["play"] = Proc("play", play_argv, out, env)  # it sends nothing before each of --wait-for has a status
+        if creds is not None:
+            wait_ready(later, opts.start_timeout)
         if view == "live":
             print(f"fmapping up: live viewer at {live_url(args)} (the recording also goes to {out / 'run.rrd'})",
                   flush=True)

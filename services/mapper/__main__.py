@@ -71,6 +71,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--source-final-timeout", type=float, default=10.0,
                    help="at the stop, wait at most this long for the pose source's last poses (a tracker's final "
                         "bundle adjustment) before the closing refinement (a source without a status: no wait)")
+    p.add_argument("--inbox-frames", type=int, default=FRAME_CAPACITY,
+                   help=f"frames the inbox holds at most (default {FRAME_CAPACITY}); when full, non-keyframes go first")
+    p.add_argument("--inbox-mb", type=float, default=FRAME_BYTES / MIB,
+                   help=f"MiB of frames the inbox holds at most (default {FRAME_BYTES // MIB})")
     p.add_argument("--device", default=None, help="torch device (default: the config's, 'auto')")
     p.add_argument("--threads", type=int, default=0,
                    help="torch threads (0 = auto: half the CPUs this process may use, at least 1)")
@@ -86,7 +90,10 @@ MAX_BYTES = {"end": 1 * MIB, "control": 1 * MIB, "status": 1 * MIB, "poses": 8 *
 
 
 def main(argv=None, session=None, keys=None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.inbox_frames < 1 or not args.inbox_mb > 0:
+        parser.error(f"--inbox-frames must be >= 1 and --inbox-mb > 0 (got {args.inbox_frames}, {args.inbox_mb})")
     setup_logging(args.log_level, "mapper")
     threads = set_torch_threads(args.threads, auto=available_cpus() // 2)
     logging.getLogger("fmapping.mapper").info("torch threads: %d", threads)
@@ -106,7 +113,9 @@ def main(argv=None, session=None, keys=None) -> int:
     ).validate()
     # frames: when full, known non-keyframes go first, then frames without a pose yet, thinned evenly
     book = book_for(opts)
-    with Service("mapper", args, capacities=CAPACITIES, max_bytes=MAX_BYTES, session=session,
+    capacities = dict(CAPACITIES, frames=args.inbox_frames)
+    max_bytes = dict(MAX_BYTES, frames=int(args.inbox_mb * MIB))
+    with Service("mapper", args, capacities=capacities, max_bytes=max_bytes, session=session,
                  keys=keys, thin=("frames",), rank={"frames": frame_rank(book)}) as svc:
         return serve(svc, cfg, opts, args, book)
 
