@@ -11,8 +11,10 @@ One synthetic scene (``fmapping.synthetic.generate_scene``) is generated once an
 For every playback rate the whole system runs through :func:`services.launcher.up.run_up`
 (``--poses tracker``: ``services.mapper``, ``services.io record``, ``services.io view``
 unless ``--no-view``, ``services.tracker`` and ``services.io play --fps F``, each an OS
-process, zenoh peers on loopback). This process opens its own zenoh session, which
-every service also connects to (``connect_extra``), and listens to:
+process). By default the run is secure, as ``fmapping up``'s is (a router with per-run
+credentials, zenoh clients, no shared memory) and this process joins it with the ``monitor``
+role's credentials (``observe``); with ``--insecure`` the services are zenoh peers on loopback
+and every one also connects to this process's session (``connect_extra``). It listens to:
 
 * ``status/*``: per-service counters, acknowledgement (``frame_seq``) and ``lag``;
 * ``poses/gt`` (the player publishes it right before each frame: the publish time of
@@ -167,18 +169,16 @@ def child_rss_mb() -> dict[str, float]:
 
 # ---------------------------------------------------------------------------- zenoh monitor
 class Monitor:
-    """A zenoh session that every service connects to; keeps the newest Status per service and
-    the arrival time of each frame's GT / tracker / mapper pose (monotonic seconds)."""
+    """A zenoh session of the run's; keeps the newest Status per service and the arrival time of each
+    frame's GT / tracker / mapper pose (monotonic seconds). :meth:`listen` for the open mesh (every
+    service connects to it), :meth:`join` for a secure run (a client of the run's router with the
+    ``monitor`` role's credentials)."""
 
     def __init__(self, ns: str):
-        from services.zenoh_session import free_port
-        from services.zenoh_session import payload_bytes, zenoh_config
-        import zenoh
-
-        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.session = zenoh.open(zenoh_config("peer", listen=[self.endpoint], connect=[], multicast=False))
         self.keys = P.Keys(ns)
         self.lock = threading.Lock()
+        self.session = None
+        self.endpoint: Optional[str] = None
         self.status: dict[str, P.Status] = {}
         self.t_pub: dict[int, float] = {}  # seq -> when poses/gt (sent right before the frame) arrived
         self.tracker: dict[int, tuple[float, Optional[float], np.ndarray]] = {}  # seq -> (t, quality, c2w)
@@ -186,9 +186,30 @@ class Monitor:
         self.t_map: dict[int, float] = {}  # seq -> first mapper pose
         self.gt: dict[int, np.ndarray] = {}
         self.decode_errors = 0
+        self._subs = []
+
+    def listen(self) -> str:
+        """A peer listening on a fresh loopback port (the open mesh: pass it as connect_extra)."""
+        from services.zenoh_session import free_port, zenoh_config
+
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self._open(zenoh_config("peer", listen=[self.endpoint], connect=[], multicast=False))
+        return self.endpoint
+
+    def join(self, config_path, ns: str) -> None:
+        """``fmapping up``'s observe hook of a secure run: the monitor role's client config."""
+        import zenoh
+
+        assert ns == self.keys.ns, (ns, self.keys.ns)
+        self._open(zenoh.Config.from_file(str(config_path)))
+
+    def _open(self, conf) -> None:
+        from services.zenoh_session import payload_bytes
+        import zenoh
+
+        self.session = zenoh.open(conf)
         subs = ((self.keys.status(), self._on_status), (self.keys.poses("gt"), self._on_pose),
                 (self.keys.poses("tracker"), self._on_pose), (self.keys.poses("mapper"), self._on_pose))
-        self._subs = []
         for key, fn in subs:
             def cb(sample, fn=fn):
                 t = time.monotonic()
@@ -224,7 +245,8 @@ class Monitor:
                 s.undeclare()
             except Exception:
                 pass
-        self.session.close()
+        if self.session is not None:
+            self.session.close()
 
 
 def _drops(name: str, counters: dict) -> dict:
@@ -272,7 +294,7 @@ def sample_row(mon: Monitor, t0: float, per_window: int) -> dict:
 
 # ---------------------------------------------------------------------------- one run
 def run_one(fps: float, scene: Path, out: Path, mapper_cfg: dict, max_seconds: float, view: bool, threads: int,
-            interval: float, poses: str = "tracker") -> dict:
+            interval: float, poses: str = "tracker", insecure: bool = False) -> dict:
     import yaml
 
     from services.launcher.up import run_up
@@ -297,9 +319,13 @@ def run_one(fps: float, scene: Path, out: Path, mapper_cfg: dict, max_seconds: f
 
     th = threading.Thread(target=sampler, name="system-bench-sampler", daemon=True)
     th.start()
+    # secure (fmapping up's default): the monitor joins as the run's monitor role once the router is up;
+    # --insecure: the open loopback mesh, every service also connecting to the monitor
+    net = {"connect_extra": [mon.listen()]} if insecure else {"observe": mon.join}
     args = argparse.Namespace(out=str(out), data=str(scene), poses=poses, fps=fps, config=str(cfg),
-                              timeout=max_seconds, ns=ns, connect_extra=[mon.endpoint])
-    print(f"[system] fps {fps:g}: fmapping up (ns {ns}, out {out}) ...", flush=True)
+                              timeout=max_seconds, ns=ns, **net)
+    print(f"[system] fps {fps:g}: fmapping up{' --insecure' if insecure else ''} (ns {ns}, out {out}) ...",
+          flush=True)
     try:
         rc = run_up(args)
     finally:
@@ -626,6 +652,8 @@ def main(argv=None) -> int:
     ap.add_argument("--mapper-set", default=None,
                     help="YAML mapping of mapper overrides: '{init_iters_per_round: 75, field: {init_opacity: 0}}'")
     ap.add_argument("--threads", type=int, default=1, help="torch threads of the mapper and the tracker")
+    ap.add_argument("--insecure", action="store_true",
+                    help="the open loopback mesh (zenoh shared memory on) instead of fmapping up's secure default")
     ap.add_argument("--interval", type=float, default=0.5, help="seconds between samples")
     ap.add_argument("--work", default=str(Path(tempfile.gettempdir()) / "fmapping_bench_system"))
     ap.add_argument("--out", default=None, help="JSON path (default bench/results/system.json; "
@@ -656,7 +684,7 @@ def main(argv=None) -> int:
                     "note": "2 CPU cores shared with other jobs: timings and lags are noisy"},
         "settings": {"frames": a.frames, "size": list(size), "seed": a.seed, "fps": a.fps, "poses": a.poses,
                      "view": view, "threads": a.threads, "max_seconds": a.max_seconds, "interval": a.interval,
-                     "quick": a.quick, "mapper": mapper_cfg, "scene": str(scene)},
+                     "quick": a.quick, "mapper": mapper_cfg, "scene": str(scene), "secure": not a.insecure},
         "runs": [],
     }
     if not a.quick and not a.no_slam_baseline and a.poses == "tracker":
@@ -666,7 +694,7 @@ def main(argv=None) -> int:
               f"{b.get('map_sim3_aligned')}", flush=True)
     for fps in a.fps:
         run = run_one(fps, scene, work / f"run_{a.poses}_fps{fps:g}", mapper_cfg, a.max_seconds, view, a.threads,
-                      a.interval, a.poses)
+                      a.interval, a.poses, a.insecure)
         results["runs"].append(run)
         s = run["summary"]
         print(f"[system] fps {fps:g}: rc {run['rc']}, {run['wall_seconds']} s | published {s['frames_published']} | "

@@ -1,7 +1,7 @@
 """Per-run credentials and access control for ``fmapping up`` (zenoh-free: it only writes files).
 
 Every run gets its own zenoh router on a loopback port and one identity per role (``play``,
-``record``, ``view``, ``tracker``, ``mapper``, ``launcher``, ``external``): a zenoh
+``record``, ``view``, ``tracker``, ``mapper``, ``launcher``, ``external``, ``monitor``): a zenoh
 user name and a random password made at start (:func:`make_run_credentials`). The router
 admits only those users (``transport/auth/usrpwd`` with a dictionary file) and routes by an
 access-control policy with ``default_permission: deny`` pinned to the run's namespace
@@ -43,6 +43,8 @@ ROLES: dict[str, dict[str, tuple[str, ...]]] = {
                "serve": ("map/latest",)},
     "launcher": {"put": ("control",)},
     "external": {"put": ("poses/external",), "sub": ("frames",)},  # an external pose producer
+    # an observer of the run (bench/system.py's monitor, a dashboard): reads poses and the map points
+    "monitor": {"sub": ("poses/*", "map/points")},
 }
 COMMON_SUB = ("control", "status/*")
 PASSWORD_BYTES = 32  # secrets.token_urlsafe: 43 characters, 256 bits

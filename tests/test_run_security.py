@@ -165,6 +165,23 @@ def test_roles_may_do_only_their_own_part(run):
             if r.ok is not None:
                 answers.add(r.ok.payload.to_bytes())
     assert answers == {b"MAP"}
+    # the monitor (bench/system.py's observer) reads poses; it may send only its own status: a control
+    # and a frame it sends are dropped at the router, the status sent after them arrives alone
+    monitor = open_role("monitor")
+    seen = subscribe(monitor, KEYS.poses())
+    assert first(tracker, KEYS.poses("tracker"), seen, b"m0") == (KEYS.poses("tracker"), b"m0")
+    everything = subscribe(view, f"{KEYS.root}/**")
+    assert first(monitor, KEYS.status("monitor"), everything, b"s0") == (KEYS.status("monitor"), b"s0")
+    time.sleep(0.3)
+    while not everything.empty():
+        everything.get()
+    monitor.put(KEYS.control, P.encode(P.Control("reset")))
+    monitor.put(KEYS.frames, b"forged")
+    monitor.put(KEYS.status("monitor"), b"s1")
+    assert everything.get(timeout=5) == (KEYS.status("monitor"), b"s1")
+    time.sleep(0.3)
+    assert everything.empty()
+    assert ask(monitor, KEYS.latest, timeout=1.5) is None  # nor may it ask for the map
 
 
 @pytest.mark.slow

@@ -137,7 +137,8 @@ def run_up(args) -> int:
     timeout = getattr(args, "timeout", None) or opts.timeout
     ns = getattr(args, "ns", None) or f"up{os.getpid()}"
     mesh: list[str] = []  # endpoints of the processes started so far
-    # optional: endpoints every service also connects to, e.g. a monitoring session (bench/system.py)
+    # optional: endpoints every service also connects to, e.g. a monitoring session in the open mesh; a secure
+    # run's observer is args.observe(monitor config path, ns) instead, called once the router is up
     extra_connect = [str(e) for e in (getattr(args, "connect_extra", None) or [])]
     # secure by default: per-run credentials, a router with access control (services.credentials);
     # a monitoring session joining the mesh (connect_extra) needs the old open mesh
@@ -219,6 +220,9 @@ def run_up(args) -> int:
         if creds is not None:
             print(f"fmapping up: secure run: router on {creds.endpoint}, per-run credentials in {creds.folder} "
                   "(mode 0600), access control by role (--insecure: the open loopback mesh)", flush=True)
+            observe = getattr(args, "observe", None)
+            if observe is not None:  # an observer in this process (bench/system.py): before any service starts
+                observe(creds.config("monitor"), ns)
         procs["mapper"] = Proc("mapper", mapper_argv, out, env)
         if creds is None:  # the open mesh: the services started later connect to the mapper's listening port
             wait_ready([procs["mapper"]], opts.start_timeout)
