@@ -379,7 +379,9 @@ def system_table(name: str) -> str:
         f"### End to end (`bench/system.py` -> `{name}.json`, `{name}.png`)\n",
         f"`fmapping up` on a synthetic room ({st.get('frames')} frames {st.get('size')}, poses from the "
         f"{st.get('poses')}), all services as OS processes on this machine, sampled every "
-        f"{st.get('interval')} s over a monitoring zenoh session. Keyframes dropped: flagged by the tracker "
+        f"{st.get('interval')} s over a monitoring zenoh session ("
+        f"{'the secure default, the monitor role' if st.get('secure') else 'the open mesh: --insecure'}). "
+        "Keyframes dropped: flagged by the tracker "
         "but never in a mapper window (GT poses: the keyframes the mapper flagged by motion, mapped / evicted).\n",
         table(["playback", "wall s", "tracker tracked / lost / skipped to keep pace", "pose latency s median / p95",
                "keyframes flagged / dropped", "mapper frames / windows / thinned / inbox-dropped",

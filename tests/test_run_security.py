@@ -46,7 +46,7 @@ def intruder_conf(endpoint: str, mode: str = "client", user=None, password=None)
     c.insert_json5("mode", json.dumps(mode))
     c.insert_json5("scouting/multicast/enabled", "false")
     c.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    c.insert_json5("connect/timeout_ms", "3000")
+    c.insert_json5("connect/timeout_ms", "1000")  # a refused client retries until then (a real one links in ms)
     if user is not None:
         c.insert_json5("transport/auth/usrpwd", json.dumps({"user": user, "password": password}))
     return c
