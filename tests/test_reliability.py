@@ -376,7 +376,9 @@ def test_checkpoint_write_is_atomic_when_the_process_dies_mid_write(dataset, tmp
 
 def _field_of_checkpoint(path: Path) -> dict:
     """A mapper checkpoint as the service loads it (weights_only: no pickle of arbitrary objects)."""
-    return torch.load(path, map_location="cpu", weights_only=True)
+    from services.mapper.core import read_checkpoint
+
+    return read_checkpoint(path)
 
 
 @pytest.mark.slow

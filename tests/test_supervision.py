@@ -284,9 +284,9 @@ def _status_of(out, name: str) -> dict:
 
 def torch_free_checkpoint_seq(out) -> int:
     """The newest frame in the mapper's checkpoint, read as the mapper does (weights_only)."""
-    import torch
+    from services.mapper.core import read_checkpoint
 
-    return int(torch.load(out / "checkpoint.pt", map_location="cpu", weights_only=True)["service"]["last_seq"])
+    return int(read_checkpoint(out / "checkpoint.pt")["service"]["last_seq"])
 
 
 @pytest.mark.parametrize("case", ["empty", "no-checkpoint", "completed"])
