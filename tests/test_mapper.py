@@ -227,58 +227,17 @@ def test_tiny_reconstruction_with_gt_poses():
 
 
 # ------------------------------------------------------------------ state
-def test_pack_tensors_round_trips_every_dtype_and_shape_through_torch_save():
-    from fmapping.mapping.state_io import PACKED, pack_tensors, unpack_tensors
-
-    g = torch.Generator().manual_seed(0)
-    base = torch.randn(4, 6, generator=g, dtype=torch.float64)
-    tree = {"f32": torch.randn(3, 2, generator=g), "f64_view": base[:, ::2],  # not contiguous
-            "scalar": torch.tensor(7.5), "empty": torch.zeros(0, 3), "ints": torch.arange(5),
-            "u8": torch.tensor([1, 2, 255], dtype=torch.uint8), "flags": torch.tensor([True, False]),
-            "per_frame": {i: torch.full((2,), float(i)) for i in range(50)},
-            "nested": [(3, torch.ones(2, 2)), "text", None, 1.5], "plain": {"a": 1}}
-    packed = pack_tensors(tree)
-    assert len(packed["buffers"]) == 5  # one per dtype: float32, float64, int64, uint8, bool
-    buf = io.BytesIO()
-    torch.save(packed, buf)
-    back = unpack_tensors(torch.load(io.BytesIO(buf.getvalue()), weights_only=True))
-
-    def same(x, y):
-        if isinstance(x, torch.Tensor):
-            assert isinstance(y, torch.Tensor) and x.dtype == y.dtype and x.shape == y.shape
-            assert torch.equal(x, y) and y.is_contiguous()
-        elif isinstance(x, dict):
-            assert set(x) == set(y)
-            for k in x:
-                same(x[k], y[k])
-        elif isinstance(x, (list, tuple)):
-            assert type(x) is type(y) and len(x) == len(y)
-            for u, v in zip(x, y):
-                same(u, v)
-        else:
-            assert x == y
-    same(tree, back)
-    back["per_frame"][3][0] = -1.0  # each tensor is its own copy, not a view of the buffer
-    assert back["per_frame"][4][0] == 4.0 and tree["per_frame"][3][0] == 3.0
-    assert unpack_tensors({"a": torch.ones(1)})["a"].item() == 1.0  # an unpacked state passes through
-    assert {PACKED: ["float32", 0, [1]]} == pack_tensors({"x": torch.ones(1)})["tree"]["x"]
-
-
 @pytest.mark.parametrize("refine_poses", [False, True])
 def test_save_restore_exact(refine_poses):
-    """The state restores exactly, saved as it is (refine_poses False) or packed into flat buffers as the
-    mapper service's checkpoint does (True)."""
-    from fmapping.mapping.state_io import pack_tensors, unpack_tensors
-
     scene, cam, c2w, views = tiny_scene(16)
     cfg = tiny_config(init_iters_per_round=20, iters_per_window=5, final_global_iters=10, refine_poses=refine_poses)
     a = Mapper(cfg, cam, aabb=room_aabb(scene))
     feed(a, views, c2w, 0, 10)  # init + one window + one pending frame
     buf = io.BytesIO()
-    torch.save(pack_tensors(a.state_dict()) if refine_poses else a.state_dict(), buf)
+    torch.save(a.state_dict(), buf)
     buf.seek(0)
     b = Mapper(cfg, cam)  # no aabb given: it comes from the state
-    b.load_state_dict(unpack_tensors(torch.load(buf, weights_only=True)))
+    b.load_state_dict(torch.load(buf, weights_only=True))
     ra, rb = a.render(c2w[3]), b.render(c2w[3])
     for k in ("rgb", "depth", "acc"):
         np.testing.assert_array_equal(ra[k], rb[k])

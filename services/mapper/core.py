@@ -609,8 +609,6 @@ class MapperCore(ServiceCore):
             return None
         import torch
 
-        from fmapping.mapping.state_io import pack_tensors
-
         t0 = time.perf_counter()
         path = self.checkpoint_path
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -623,7 +621,7 @@ class MapperCore(ServiceCore):
                         "init_seq": self.init_seq, "window_iters": int(self.window_iters)},
         }
         with atomic_open(path, fsync=True, fsync_folder=True) as fh:
-            torch.save(pack_tensors(state), fh)  # a few flat buffers, not ~5 tensors per frame
+            torch.save(state, fh)
         self.counters.inc("checkpoints")
         self.counters.set("checkpoint_ms", round((time.perf_counter() - t0) * 1e3, 1))
         return path
@@ -708,14 +706,12 @@ def _take(core: MapperCore, publish: Callable[[list], None], item: tuple) -> Non
 
 
 def read_checkpoint(path) -> dict:
-    """The state a mapper checkpoint holds (``torch.load(weights_only=True)``, unpacked); a ValueError naming
-    the file when it is not one."""
+    """The state a mapper checkpoint holds (``torch.load(weights_only=True)``); a ValueError naming the file
+    when it is not one."""
     import torch
 
-    from fmapping.mapping.state_io import unpack_tensors
-
     try:
-        state = unpack_tensors(torch.load(path, map_location="cpu", weights_only=True))
+        state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
         raise ValueError(f"{path}: not a readable mapper checkpoint: {e}") from None
     if not isinstance(state, dict) or state.get("version") != CHECKPOINT_VERSION:
