@@ -862,7 +862,8 @@ def test_service_entry_points_have_help():
         assert e.value.code == 0
 
 
-@pytest.mark.parametrize("bad", [["--inbox-frames", "0"], ["--inbox-mb", "0"], ["--inbox-mb", "nan"]])
+@pytest.mark.parametrize("bad", [["--inbox-frames", "0"], ["--inbox-mb", "0"], ["--inbox-mb", "nan"],
+                                 ["--inbox-mb", "inf"]])
 def test_the_mapper_refuses_an_inbox_that_holds_nothing(bad, capsys):
     """An inbox ceiling of no frames or no bytes is a usage error naming the options, before any
     session is opened."""
@@ -871,7 +872,7 @@ def test_the_mapper_refuses_an_inbox_that_holds_nothing(bad, capsys):
     with pytest.raises(SystemExit) as e:
         main(bad)
     assert e.value.code == 2
-    assert "--inbox-frames must be >= 1 and --inbox-mb > 0" in capsys.readouterr().err
+    assert "--inbox-frames must be >= 1 and --inbox-mb > 0 and finite" in capsys.readouterr().err
 
 
 def test_sigterm_during_a_mapping_window_stops_within_5_seconds(dataset, tmp_path):

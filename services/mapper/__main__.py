@@ -92,8 +92,9 @@ MAX_BYTES = {"end": 1 * MIB, "control": 1 * MIB, "status": 1 * MIB, "poses": 8 *
 def main(argv=None, session=None, keys=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.inbox_frames < 1 or not args.inbox_mb > 0:
-        parser.error(f"--inbox-frames must be >= 1 and --inbox-mb > 0 (got {args.inbox_frames}, {args.inbox_mb})")
+    if args.inbox_frames < 1 or not 0 < args.inbox_mb < float("inf"):
+        parser.error(f"--inbox-frames must be >= 1 and --inbox-mb > 0 and finite (got {args.inbox_frames}, "
+                     f"{args.inbox_mb})")
     setup_logging(args.log_level, "mapper")
     threads = set_torch_threads(args.threads, auto=available_cpus() // 2)
     logging.getLogger("fmapping.mapper").info("torch threads: %d", threads)
