@@ -21,6 +21,7 @@ from fakes import FakeProc, FakeSession  # noqa: E402
 from fault_helpers import FAULT_MAPPER  # noqa: E402
 from service_helpers import ROOT, SMALL_MAPPER, subprocess_env  # noqa: E402
 
+from fmapping import protocol as P  # noqa: E402
 from services.launcher import supervise  # noqa: E402
 from services.launcher import up as launcher_up  # noqa: E402
 from services.launcher.commands import tracker_state  # noqa: E402
@@ -327,14 +328,28 @@ def test_a_router_port_taken_before_it_binds_is_replaced(scene, tmp_path, monkey
     cfg.write_text(yaml.safe_dump({"mapper": SMALL_MAPPER, "launcher": {"timeout": 240, "threads": 1,
                                                                          "view": False}}))
     out = tmp_path / "out"
+    # an observer in this process (as bench/system.py's monitor) joins with the monitor role's credentials
+    import zenoh
+
+    sessions, heard = [], set()
+
+    def observe(config, ns):
+        s = zenoh.open(zenoh.Config.from_file(str(config)))
+        sessions.append(s)
+        s.declare_subscriber(P.Keys(ns).status(), lambda sample: heard.add(str(sample.key_expr).split("/")[-1]))
+
     try:
-        rc = launcher_up.run_up(argparse.Namespace(data=str(scene), poses="gt", out=str(out), fps=0.0, config=str(cfg)))
+        rc = launcher_up.run_up(argparse.Namespace(data=str(scene), poses="gt", out=str(out), fps=0.0, config=str(cfg),
+                                                   observe=observe))
     finally:
         squatter.close()
+        for s in sessions:
+            s.close()
     err = capsys.readouterr()
     assert rc == 0, err.out[-2000:] + err.err[-2000:]
     # the first router could not bind the taken port: the run announced (and used) another one
     assert f"tcp/127.0.0.1:{taken}" not in err.out and "secure run: router on tcp/127.0.0.1:" in err.out
+    assert len(sessions) == 1 and {"mapper", "play", "record"} <= heard, heard  # it heard the services' statuses
 
 
 def test_mapper_skips_the_frames_a_restarted_pose_source_will_never_answer(dataset):

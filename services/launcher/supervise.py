@@ -27,7 +27,10 @@ FINAL_CODES = (2, 3)  # bad input, gave up waiting (services.process.EXIT_STALLE
 
 # CPU priority (nice increments) by service: the camera's path (play, tracker) first; the mapper may lag (it keeps
 # every keyframe and catches up), the recorder and the viewer come last. Only matters when the cores are busy.
-NICE = {"mapper": 5, "record": 5, "view": 10}
+# 1,000 frames at 30 fps, secure, two alternated pairs (bench/results/secure_system/nice_*.json): 5 / 5 / 10 ->
+# 10 / 10 / 15 tracked 624 / 675 -> 740 / 795 frames (the rest skipped to keep pace), pose latency median
+# 0.156 / 0.113 -> 0.076 / 0.055 s, p95 0.446 / 0.636 -> 0.428 / 0.271 s; map after the Sim3 94.4-95.2 -> 95.5-96.1 %.
+NICE = {"mapper": 10, "record": 10, "view": 15}
 
 
 def _child_setup(increment: int):
