@@ -26,6 +26,10 @@ class LauncherOptions:
     tracker_frontend: str = "mono"  # --poses tracker: "mono" (RGB-only front end, as fmapping slam) | "map"
     start_timeout: float = 120.0
     grace: float = 15.0  # seconds between SIGINT and SIGKILL on shutdown
+    # the mapper's frame inbox (services.mapper --inbox-frames / --inbox-mb): frames and MiB it holds at most while
+    # it is behind the camera, non-keyframes evicted first; None: the service's default (512 frames, 384 MiB)
+    mapper_inbox_frames: Optional[int] = None
+    mapper_inbox_mb: Optional[float] = None
     extra: dict = field(default_factory=dict)
 
 

@@ -375,3 +375,36 @@ def test_up_passes_camera_for_a_recorded_source_too(tmp_path, monkeypatch):
     assert info["dataset"]["kind"] == "images" and info["dataset"]["camera"]["fx"] == 30.0
     with pytest.raises(Exception, match="no camera intrinsics"):
         launcher.run_info(images, "tracker", None, None, LauncherOptions())
+
+
+def test_up_passes_the_mapper_inbox_bounds_of_its_config(scene, tmp_path, monkeypatch, capsys):
+    """``launcher.mapper_inbox_frames`` / ``mapper_inbox_mb`` reach the mapper's command line, which its own
+    parser reads back; unset, the mapper keeps its defaults; a bad value is a one-line error naming the key,
+    before any process starts."""
+    import yaml
+
+    from services.cli import main
+    from services.mapper.__main__ import build_parser
+    from services.mapper.intake import FRAME_BYTES, FRAME_CAPACITY
+
+    started = fake_up(monkeypatch)
+
+    def mapper_args(launcher: dict):
+        started.clear()
+        cfg = tmp_path / f"up{len(list(tmp_path.iterdir()))}.yaml"
+        cfg.write_text(yaml.safe_dump({"launcher": launcher}))
+        rc = main(["up", "--data", str(scene), "--poses", "gt", "--view", "save", "--insecure", "--config", str(cfg),
+                   "--out", str(tmp_path / cfg.stem)])
+        return rc, (build_parser().parse_args(started["mapper"][3:]) if "mapper" in started else None)
+
+    rc, a = mapper_args({"mapper_inbox_frames": 64, "mapper_inbox_mb": 24})
+    assert rc == 0 and (a.inbox_frames, a.inbox_mb) == (64, 24.0)
+    rc, a = mapper_args({})
+    assert rc == 0 and (a.inbox_frames, a.inbox_mb) == (FRAME_CAPACITY, FRAME_BYTES / 2 ** 20)
+    capsys.readouterr()
+    for bad in ({"mapper_inbox_frames": 0}, {"mapper_inbox_frames": 2.5}, {"mapper_inbox_mb": -1},
+                {"mapper_inbox_mb": float("inf")}):
+        rc, a = mapper_args(bad)
+        err = capsys.readouterr().err
+        assert rc == 2 and a is None and started == {}, bad
+        assert f"launcher.{next(iter(bad))}" in err and len(err.strip().splitlines()) == 1, err

@@ -106,6 +106,17 @@ def make_scene(out: Path, opts: LauncherOptions) -> Path:
     return scene
 
 
+def mapper_inbox(opts: LauncherOptions) -> dict:
+    """The mapper's inbox bounds of ``launcher.mapper_inbox_frames`` / ``mapper_inbox_mb`` as its options
+    (unset: left to the service's defaults), checked before any process starts."""
+    frames, mb = opts.mapper_inbox_frames, opts.mapper_inbox_mb
+    if frames is not None and (isinstance(frames, bool) or not isinstance(frames, int) or frames < 1):
+        raise ValueError(f"launcher.mapper_inbox_frames must be an integer >= 1, got {frames!r}")
+    if mb is not None and (isinstance(mb, bool) or not isinstance(mb, (int, float)) or not 0 < mb < float("inf")):
+        raise ValueError(f"launcher.mapper_inbox_mb must be a number > 0 and finite (MiB), got {mb!r}")
+    return {"inbox_frames": frames, "inbox_mb": None if mb is None else float(mb)}
+
+
 def with_user_box(mapper_cfg: Optional[Path], bbox: Optional[list], out: Path) -> Optional[Path]:
     """Mapper YAML (written under OUT/config) = the user's mapper section + the ``--bbox`` they gave;
     unchanged without one. Otherwise the mapper bounds the scene itself, from the points it
@@ -162,6 +173,7 @@ def run_up(args) -> int:
 
     if opts.tracker_frontend not in ("mono", "map"):
         raise ValueError(f"launcher.tracker_frontend must be 'mono' or 'map', got {opts.tracker_frontend!r}")
+    inbox = mapper_inbox(opts)
     mono = poses == "tracker" and opts.tracker_frontend == "mono"
     live = isinstance(data, str)  # up_data: a live camera is its camera:N string, a dataset a Path
     # paced playback (a dataset at --fps 0): the player waits for the mapper, so nobody is behind the camera:
@@ -191,6 +203,7 @@ def run_up(args) -> int:
         unposed_init="yes" if poses == "tracker" and not mono else None,
         resent_frames=poses == "tracker" and not live,  # play sends a restarted tracker what it missed (resend_to)
         behind_frames=0 if paced else None,
+        **inbox,
         config=str(mapper_cfg) if mapper_cfg else None)
     record_src = poses
     procs: dict[str, Proc] = {}
