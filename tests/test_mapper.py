@@ -255,6 +255,54 @@ def test_save_restore_exact(refine_poses):
     assert fa.loss == fb.loss
 
 
+def _tensors(x) -> int:
+    if isinstance(x, torch.Tensor):
+        return 1
+    if isinstance(x, dict):
+        return sum(_tensors(v) for v in x.values())
+    return sum(_tensors(v) for v in x) if isinstance(x, (list, tuple)) else 0
+
+
+def test_state_packs_the_per_frame_tensors_and_loads_the_unpacked_form():
+    """Poses, exposures and the exposures' Adam moments are packed (torch.save pays per tensor): their count
+    in the state does not grow with the frames. A state of the earlier form (one tensor per frame) still loads,
+    and both continue exactly as the mapper they were saved from."""
+    from fmapping.mapping.state_io import unpack_by_frame, unpack_optimizer_state
+
+    scene, cam, c2w, views = tiny_scene(16)
+    cfg = tiny_config(init_iters_per_round=20, iters_per_window=5, final_global_iters=10)
+    a = Mapper(cfg, cam, aabb=room_aabb(scene))
+    feed(a, views, c2w, 0, 10)
+    per_frame = ("poses", "exposure", "optimizer")
+    n10 = {k: _tensors(a.state_dict()[k]) for k in per_frame}
+    sa = feed(a, views, c2w, 10, 15)
+    n15 = {k: _tensors(a.state_dict()[k]) for k in per_frame}
+    assert n10 == n15 and n15["poses"] == 2 and n15["exposure"] == 2, (n10, n15)
+    sd = a.state_dict()
+    legacy = dict(sd, poses=unpack_by_frame(sd["poses"]), exposure=unpack_by_frame(sd["exposure"]),
+                  optimizer=unpack_optimizer_state(sd["optimizer"]))
+    assert sorted(legacy["poses"]) == list(range(15)) and _tensors(legacy["optimizer"]) > 3 * 14
+    assert legacy["optimizer"]["state"].keys() == a._opt.state_dict()["state"].keys()
+    for state in (sd, legacy):
+        buf = io.BytesIO()
+        torch.save(state, buf)
+        buf.seek(0)
+        b = Mapper(cfg, cam)
+        b.load_state_dict(torch.load(buf, weights_only=True))
+        for k, p in a.frame_poses().items():
+            np.testing.assert_array_equal(p, b.frame_poses()[k])
+        for (i, ea), (j, eb) in zip(a._exposure.items(), b._exposure.items()):
+            assert i == j and torch.equal(ea, eb)
+        for k, st in a._opt.state_dict()["state"].items():
+            for key, v in st.items():
+                assert torch.equal(v, b._opt.state_dict()["state"][k][key]), (k, key)
+    assert sa is not None
+    c = Mapper(cfg, cam)
+    c.load_state_dict(legacy)
+    s1, s2 = feed(a, views, c2w, 15, 16) or a.finish(), feed(c, views, c2w, 15, 16) or c.finish()
+    assert s1.loss == s2.loss
+
+
 def test_should_stop_cancels_between_iterations():
     """``should_stop`` is asked before every iteration: the update stops after exactly as many
     iterations as it allowed, and a mapper whose ``should_stop`` never fires runs them all."""

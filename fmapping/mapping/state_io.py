@@ -27,11 +27,11 @@ class MapperStateIO:
             "aabb_given": None if self._aabb_given is None else self._aabb_given.clone(),
             "field": None if self.field is None else {k: v.detach().cpu().clone()
                                                       for k, v in self.field.state_dict().items()},
-            "optimizer": None if self._opt is None else _cpu_tree(self._opt.state_dict()),
+            "optimizer": None if self._opt is None else pack_optimizer_state(_cpu_tree(self._opt.state_dict())),
             "pose_corr": None if self._pose_corr is None else self._pose_corr.detach().cpu().clone(),
             "images": self._images.state_dict(),
             "depths": {int(i): dp.clone() for i, dp in self._depths.items()},
-            "poses": {int(i): p.clone() for i, p in self._poses.items()},
+            "poses": pack_by_frame({int(i): p.clone() for i, p in self._poses.items()}),
             "timestamps": {int(i): float(t) for i, t in self._timestamps.items()},
             "frame_numbers": {int(i): int(n) for i, n in self._frame_no.items()},
             "guessed": sorted(self._guessed),
@@ -46,8 +46,8 @@ class MapperStateIO:
             "iterations": self._iterations,
             "stats": [s.to_dict() for s in self._stats],
             "rng": self._gen.get_state().clone(),
-            "exposure": {int(i): p.detach().cpu().clone() for i, p in self._exposure.items()},
-            "pose_delta": {int(i): p.detach().cpu().clone() for i, p in self._pose_delta.items()},
+            "exposure": pack_by_frame({int(i): p.detach().cpu().clone() for i, p in self._exposure.items()}),
+            "pose_delta": pack_by_frame({int(i): p.detach().cpu().clone() for i, p in self._pose_delta.items()}),
             "sparse": None if self._sparse is None else self._sparse.state_dict(),
             "box_refits": self._box_refits,
             "box_provisional": self._box_provisional,
@@ -63,7 +63,7 @@ class MapperStateIO:
         self._aabb_given = None if d["aabb_given"] is None else d["aabb_given"].clone()
         self._images.load_state_dict(d["images"])
         self._depths = {int(i): dp.clone() for i, dp in d["depths"].items()}
-        self._poses = {int(i): p.clone().to(torch.float64) for i, p in d["poses"].items()}
+        self._poses = {int(i): p.clone().to(torch.float64) for i, p in unpack_by_frame(d["poses"]).items()}
         self._timestamps = {int(i): float(t) for i, t in d["timestamps"].items()}
         self._frame_no = {int(i): int(n) for i, n in d.get("frame_numbers", {}).items()}
         self._guessed = set(d["guessed"])
@@ -82,8 +82,8 @@ class MapperStateIO:
         self._box_provisional = bool(d.get("box_provisional", False))
         if self._sparse is not None and d.get("sparse") is not None:
             self._sparse.load_state_dict(d["sparse"])
-        self._exposure = self._frame_params(d.get("exposure", {}))
-        self._pose_delta = self._frame_params(d.get("pose_delta", {}))
+        self._exposure = self._frame_params(unpack_by_frame(d.get("exposure", {})))
+        self._pose_delta = self._frame_params(unpack_by_frame(d.get("pose_delta", {})))
         self.field, self._opt, self._pose_corr, self.aabb = None, None, None, None
         if d["field"] is not None:
             self._aabb_given, given = d["aabb"].clone(), self._aabb_given
@@ -98,12 +98,70 @@ class MapperStateIO:
                     self._freeze_decoder()
                 elif self._pose_corr is not None:
                     self._pose_corr.requires_grad_(False)
-            self._opt.load_state_dict(d["optimizer"])
+            self._opt.load_state_dict(unpack_optimizer_state(d["optimizer"]))
 
     def _frame_params(self, saved: dict) -> dict:
         """Per-frame parameters (exposures, pose corrections) of a state, in frame order (frame 0 fixed)."""
         return {int(i): torch.nn.Parameter(e.clone().to(self.device), requires_grad=int(i) > 0)
                 for i, e in sorted(saved.items())}
+
+
+# torch.save costs tens of microseconds per tensor, whatever its size, and the mapper holds a few tiny ones per
+# frame (pose, exposure, the exposures' Adam moments): packed into one stacked tensor per kind, a 400-frame
+# state's checkpoint took 68-84 ms instead of 255-270 (bench/results/checkpoint_time/). Only tensors of at most
+# PACK_NUMEL elements are packed: large ones stay as they are, with no copy (packing every tensor grew the
+# mapper's RSS).
+PACK_NUMEL = 64
+
+
+def pack_by_frame(d: dict) -> dict:
+    """``{frame id: tensor}`` whose tensors share one shape and dtype (and have at most :data:`PACK_NUMEL`
+    elements) as ``{"packed_ids": ids, "packed_values": stacked}``; any other map as it is."""
+    if not d:
+        return d
+    ts = list(d.values())
+    t0 = ts[0]
+    if t0.numel() > PACK_NUMEL or any(t.shape != t0.shape or t.dtype != t0.dtype for t in ts):
+        return d
+    return {"packed_ids": torch.tensor(list(d), dtype=torch.int64), "packed_values": torch.stack(ts)}
+
+
+def unpack_by_frame(d: dict) -> dict:
+    """The ``{frame id: tensor}`` map :func:`pack_by_frame` packed (a map it left as it is, unchanged)."""
+    if set(d) != {"packed_ids", "packed_values"}:
+        return d
+    return {int(i): v.clone() for i, v in zip(d["packed_ids"].tolist(), d["packed_values"])}
+
+
+def pack_optimizer_state(sd: dict) -> dict:
+    """An optimizer ``state_dict`` with the per-parameter states made only of small tensors (at most
+    :data:`PACK_NUMEL` elements each) stacked by their keys, shapes and dtypes into ``sd["packed"]``; the
+    other states stay in ``sd["state"]``. :func:`unpack_optimizer_state` gives the ``state_dict`` back."""
+    groups: dict = {}
+    rest = {}
+    for idx, st in sd["state"].items():
+        if st and all(isinstance(v, Tensor) and v.numel() <= PACK_NUMEL for v in st.values()):
+            sig = tuple((k, tuple(v.shape), v.dtype) for k, v in sorted(st.items()))
+            groups.setdefault(sig, []).append(idx)
+        else:
+            rest[idx] = st
+    packed = [{"ids": torch.tensor(ids, dtype=torch.int64),
+               "values": {k: torch.stack([sd["state"][i][k] for i in ids]) for k, _, _ in sig}}
+              for sig, ids in groups.items()]
+    return {**sd, "state": rest, "packed": packed}
+
+
+def unpack_optimizer_state(sd: dict) -> dict:
+    """The ``state_dict`` :func:`pack_optimizer_state` packed (one without ``packed``, unchanged)."""
+    if "packed" not in sd:
+        return sd
+    state = dict(sd["state"])
+    for g in sd["packed"]:
+        for j, idx in enumerate(g["ids"].tolist()):
+            state[idx] = {k: v[j].clone() for k, v in g["values"].items()}
+    out = {k: v for k, v in sd.items() if k != "packed"}
+    out["state"] = dict(sorted(state.items()))
+    return out
 
 
 def _cpu_tree(x):
