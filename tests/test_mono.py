@@ -243,3 +243,49 @@ def test_mono_late_anchor_takes_the_scale_again_at_the_end_of_the_init_window(ro
     plain, _ = _mono_until(ds, MonoConfig(late_anchor_frames=0), len(ds))
     a, b = plain.poses(), fe.poses()
     assert max(np.abs(a[k] - b[k]).max() for k in a) < 1e-9
+
+
+def test_observations_table_matches_a_list_of_tuples():
+    """The store's observation table against the plain list of ``(keyframe, landmark, u, v)`` tuples it
+    replaced, under random appends, drops and in-place pixel edits: rows, per-keyframe lookups and each
+    landmark's first keyframe agree exactly."""
+    from fmapping.tracking.mono.store import Observations
+
+    rng = np.random.default_rng(3)
+    ref: list = []
+    tab = Observations()
+    for step in range(60):
+        kf = step * 5
+        n = int(rng.integers(0, 40))
+        lids = rng.integers(0, 300, n)
+        uv = rng.normal(size=(n, 2)) * 100
+        if step % 7 == 3 and n:  # one by one, as the triangulation adds them
+            for i, (u, v) in zip(lids, uv):
+                tab.append(kf, int(i), float(u), float(v))
+        else:
+            tab.extend(kf, lids, uv)
+        ref += [(kf, int(i), float(u), float(v)) for i, (u, v) in zip(lids, uv)]
+        if step % 5 == 4 and ref:  # a bundle adjustment drops outlying pairs
+            pick = rng.choice(len(ref), size=min(15, len(ref)), replace=False)
+            bad = {(ref[j][0], ref[j][1]) for j in pick}
+            tab.drop(bad)
+            ref = [o for o in ref if (o[0], o[1]) not in bad]
+        if step == 30:  # pixels unrolled in place for one keyframe
+            m = tab.kf == kf
+            tab.uv[m] = tab.uv[m] + 0.5
+            ref = [(k, i, u + 0.5, v + 0.5) if k == kf else (k, i, u, v) for k, i, u, v in ref]
+        assert len(tab) == len(ref)
+    assert list(tab) == ref
+    np.testing.assert_array_equal(tab.rows(), np.array(ref, np.float64))
+    first: dict = {}
+    for k, i, _, _ in ref:
+        first.setdefault(i, k)
+    assert tab.first_keyframes() == first
+    for kf in (0, 15, 150, 295, 1000):
+        lids, uv = tab.of_keyframe(kf)
+        mine = [(i, u, v) for k, i, u, v in ref if k == kf]
+        assert lids.tolist() == [i for i, _, _ in mine] and uv.tolist() == [[u, v] for _, u, v in mine]
+    again = Observations.from_rows(ref)
+    assert list(again) == ref
+    with pytest.raises(ValueError, match="landmarks"):
+        tab.extend(0, [1, 2], [[0.0, 0.0]])

@@ -351,12 +351,112 @@ class TwoViewResult:
     median_parallax_deg: float
 
 
+def corner_covariance(gray: np.ndarray, uv: np.ndarray, cfg: KltConfig, cap: float = 100.0) -> np.ndarray:
+    """The shape of the position error of KLT tracks at pixels ``uv`` (N, 2) of ``gray``: (N, 2, 2) covariances
+    (pixels squared) from the structure tensor ``G`` summed over the LK window (:func:`klt_window`),
+    ``lambda_max(G) G^-1`` with its eigenvalues clipped to [1, ``cap``].
+
+    A corner textured in every direction gets the identity: the isotropic one-pixel error the rest of the
+    front end assumes. A point on an edge or a stripe gets up to ``cap`` times that variance along the edge,
+    where LK cannot tell how far it moved (the aperture problem) and settles near its starting guess, so its
+    error there is systematic, not noise. On a widened synthetic room whose first frames see a striped,
+    nearly planar wall, such points pulled the two-view translation 15-25 deg off the true direction
+    (bench/results/anisotropic_tracks/)."""
+    g = np.asarray(gray, np.float32)
+    ix = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    iy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    win = klt_window(cfg, g.shape[1])
+    sxx, sxy, syy = (cv2.boxFilter(a, -1, (win, win), normalize=False) for a in (ix * ix, ix * iy, iy * iy))
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    u = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, g.shape[1] - 1)
+    v = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, g.shape[0] - 1)
+    tensor = np.stack([np.stack([sxx[v, u], sxy[v, u]], -1), np.stack([sxy[v, u], syy[v, u]], -1)], -2)
+    w, vec = np.linalg.eigh(tensor.astype(np.float64))  # ascending eigenvalues
+    var = np.clip(w[:, 1:2] / np.maximum(w, 1e-12), 1.0, cap)
+    return np.einsum("nij,nj,nkj->nik", vec, var, vec)
+
+
+def epipolar_whitened_px(camera: PinholeCamera, rot_ab: np.ndarray, t_ab: np.ndarray, uv_a: np.ndarray,
+                         uv_b: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Signed epipolar error (N,) of pixel pairs under ``x_b = rot_ab x_a + t_ab``, each divided by its standard
+    deviation under the pairs' position covariances ``cov`` (N, 2, 2), the same for both pixels (first order:
+    the Sampson error with anisotropic pixel noise; with the identity it is the Sampson distance in pixels)."""
+    t = np.asarray(t_ab, np.float64).reshape(3)
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    k_inv = np.linalg.inv(camera.K)
+    f = k_inv.T @ tx @ np.asarray(rot_ab, np.float64) @ k_inv
+    xa = np.c_[np.asarray(uv_a, np.float64).reshape(-1, 2), np.ones(len(uv_a))]
+    xb = np.c_[np.asarray(uv_b, np.float64).reshape(-1, 2), np.ones(len(uv_b))]
+    fxa, ftxb = xa @ f.T, xb @ f
+    e = (xb * fxa).sum(1)
+    ga, gb = ftxb[:, :2], fxa[:, :2]  # d e / d uv_a, d e / d uv_b
+    var = np.einsum("ni,nij,nj->n", ga, cov, ga) + np.einsum("ni,nij,nj->n", gb, cov, gb)
+    return e / np.sqrt(np.maximum(var, 1e-30))
+
+
+def hemisphere_directions(n: int) -> np.ndarray:
+    """``n`` unit vectors spread evenly over the half sphere z >= 0 (a Fibonacci lattice)."""
+    i = np.arange(n) + 0.5
+    polar = np.arccos(1.0 - i / n)
+    azimuth = np.pi * (1.0 + 5 ** 0.5) * i
+    return np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], -1)
+
+
+def refine_two_view_whitened(camera: PinholeCamera, rot_ab: np.ndarray, t_ab: np.ndarray, uv_a: np.ndarray,
+                             uv_b: np.ndarray, cov: np.ndarray, inlier_px: float = 1.0,
+                             starts: int = 0) -> Optional[tuple]:
+    """Relative rotation and unit translation (a -> b) fitted to every pair by robust least squares (Huber at
+    ``inlier_px``) on :func:`epipolar_whitened_px`, then again on the pairs within ``inlier_px``. Returns
+    ``(rot_ab, t_ab, inlier mask)``, or None when fewer than 20 pairs fit.
+
+    With ``starts`` > 0 the fit also starts from that many translation directions spread over the half sphere
+    (the rotation from ``rot_ab``) and keeps the lowest cost: on a nearly planar scene seen with a short
+    baseline the cost has local minima tens of degrees of translation apart, and the start that RANSAC's
+    isotropic error chose can sit in the wrong one."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    r0 = np.asarray(rot_ab, np.float64)
+    uv_a = np.asarray(uv_a, np.float64).reshape(-1, 2)
+    uv_b = np.asarray(uv_b, np.float64).reshape(-1, 2)
+    t0 = np.asarray(t_ab, np.float64).reshape(3) / max(np.linalg.norm(t_ab), 1e-12)
+
+    def pose(x):
+        return Rotation.from_rotvec(x[:3]).as_matrix() @ r0, x[3:] / max(np.linalg.norm(x[3:]), 1e-12)
+
+    def fit(x, m, nfev):
+        fun = lambda p: epipolar_whitened_px(camera, *pose(p), uv_a[m], uv_b[m], cov[m])  # noqa: E731
+        return least_squares(fun, x, loss="huber", f_scale=inlier_px, max_nfev=nfev)
+
+    every = np.ones(len(uv_a), bool)
+    best = fit(np.r_[np.zeros(3), t0], every, 200)
+    for d in hemisphere_directions(starts) if starts > 0 else []:
+        sol = fit(np.r_[np.zeros(3), d], every, 60)
+        if sol.cost < best.cost:
+            best = sol
+    x = best.x
+    inl = np.abs(epipolar_whitened_px(camera, *pose(x), uv_a, uv_b, cov)) < inlier_px
+    if inl.sum() < 20:
+        return None
+    x = fit(x, inl, 200).x  # again on its inliers
+    inl = np.abs(epipolar_whitened_px(camera, *pose(x), uv_a, uv_b, cov)) < inlier_px
+    if inl.sum() < 20:
+        return None
+    rot, t = pose(x)
+    return rot, t, inl
+
+
 def two_view_init(camera: PinholeCamera, uv_a: np.ndarray, uv_b: np.ndarray, ransac_px: float = 1.0,
-                  min_parallax_deg: float = 1.0, refine: bool = True) -> Optional[TwoViewResult]:
+                  min_parallax_deg: float = 1.0, refine: bool = True,
+                  cov: Optional[np.ndarray] = None, starts: int = 0) -> Optional[TwoViewResult]:
     """Relative pose (unit translation) of view b w.r.t. view a from tracked pixels, or None.
 
     Essential matrix (RANSAC, 5-point) and ``recoverPose``; with ``refine`` a two-view
-    bundle adjustment on the inliers (view a fixed) polishes pose and points.
+    bundle adjustment on the inliers (view a fixed) polishes pose and points. With the
+    tracks' position covariances ``cov`` (N, 2, 2, :func:`corner_covariance`) the pose is
+    instead refined on the whitened epipolar error of every pair
+    (:func:`refine_two_view_whitened`, from ``starts`` more translation directions too), which
+    also chooses the inliers.
     """
     uv_a = np.asarray(uv_a, np.float64).reshape(-1, 2)
     uv_b = np.asarray(uv_b, np.float64).reshape(-1, 2)
@@ -370,6 +470,21 @@ def two_view_init(camera: PinholeCamera, uv_a: np.ndarray, uv_b: np.ndarray, ran
     inl = mask2.reshape(-1) > 0
     if n_in < 20:
         return None
+    if cov is not None:
+        fit = refine_two_view_whitened(camera, r, t, uv_a, uv_b, np.asarray(cov, np.float64), ransac_px, starts)
+        if fit is None:
+            return None
+        r, t, inl = fit
+        t = t.reshape(3, 1)
+        # the epipolar error does not see the sign of t: take the one that puts more points in front of both views
+        front = []
+        for sign in (1.0, -1.0):
+            t_ab = np.eye(4)
+            t_ab[:3, :3], t_ab[:3, 3] = r, sign * t.reshape(-1)
+            front.append((triangulate(camera, np.eye(4), np.linalg.inv(t_ab), uv_a[inl], uv_b[inl], 0.0,
+                                      4 * ransac_px)[1].sum(), sign))
+        t = max(front)[1] * t
+        refine = False  # the bundle adjustment's isotropic pixel error would pull the pose back
     # recoverPose gives x_b = R x_a + t  (a -> b); c2w_b = inv([R|t]) with a at the identity
     t_ab = np.eye(4)
     t_ab[:3, :3] = r

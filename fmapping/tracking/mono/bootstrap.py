@@ -9,7 +9,7 @@ import numpy as np
 from fmapping.geometry import inv_pose, orthonormalize, pose_distance
 from fmapping.tracking.ba import bundle_adjust
 from fmapping.tracking.features import (
-    at_width, detect_corners, to_u8, triangulate, two_view_init, two_view_known_baseline,
+    at_width, corner_covariance, detect_corners, to_u8, triangulate, two_view_init, two_view_known_baseline,
 )
 from fmapping.tracking.mono.store import Tracks
 from fmapping.tracking.rolling_shutter import rotation_step, unroll
@@ -50,7 +50,9 @@ class Bootstrap:
         if not self._buf:
             self._first_index = index
             self._buf.append((index, rgb))
-            self.store.tracks = Tracks(detect_corners(gray, c.klt), index)
+            corners = detect_corners(gray, c.klt)
+            self.store.tracks = Tracks(corners, index,
+                                       corner_covariance(gray, corners, c.klt) if c.anisotropic_tracks else None)
             self._last_gray = gray
             self._c2w0 = orthonormalize(np.asarray(c2w0, np.float64))
             self._hist = {index: (self.store.tracks.tid.copy(), self.store.tracks.uv.copy())}
@@ -84,11 +86,21 @@ class Bootstrap:
                 return None
             s, how = float(np.linalg.norm(c_a)), "anchor_position"
         else:
-            tv = two_view_init(self.camera, tr.uv_first, tr.uv, c.ransac_px, c.tri_min_parallax_deg)
-            if tv is None or tv.valid.sum() < c.init_min_points or tv.median_parallax_deg < c.init_min_parallax_deg:
+            cov = tr.cov if c.anisotropic_tracks else None
+
+            def usable(tv) -> bool:
+                return (tv is not None and tv.valid.sum() >= c.init_min_points
+                        and tv.median_parallax_deg >= c.init_min_parallax_deg
+                        and np.radians(tv.median_parallax_deg) * self.camera.fx >= need_px)
+
+            tv = two_view_init(self.camera, tr.uv_first, tr.uv, c.ransac_px, c.tri_min_parallax_deg, cov=cov)
+            if not usable(tv):
                 return None
-            if np.radians(tv.median_parallax_deg) * self.camera.fx < need_px:
-                return None
+            if cov is not None and c.init_two_view_starts > 0:  # the start it would take: search for a better one
+                tv = two_view_init(self.camera, tr.uv_first, tr.uv, c.ransac_px, c.tri_min_parallax_deg, cov=cov,
+                                   starts=c.init_two_view_starts)
+                if not usable(tv):
+                    return None
             base = anchor_baseline(index) if anchor_baseline is not None else None
             if base is not None and base > 1e-4:
                 s, how = float(base), "anchor"  # recoverPose's translation has unit norm
@@ -107,8 +119,8 @@ class Bootstrap:
             lid = len(self.store.lm)
             self.store.lm.append(world[j])
             tr.lid[j] = lid
-            self.store.obs.append((i0, lid, tr.uv_first[j, 0], tr.uv_first[j, 1]))
-            self.store.obs.append((index, lid, tr.uv[j, 0], tr.uv[j, 1]))
+            self.store.obs.append(i0, lid, tr.uv_first[j, 0], tr.uv_first[j, 1])
+            self.store.obs.append(index, lid, tr.uv[j, 0], tr.uv[j, 1])
         self.store.window = [i0, index]
         self.store.kf_rgb = {i0: self._buf[0][1], index: rgb}
         if c.loop.enabled:
@@ -159,11 +171,10 @@ class Bootstrap:
         tr.uv_first = unroll(cam, tr.uv_first, steps[i0], r)
         self._step = steps[index]
         tr.geo = self._geo(tr.uv)
-        obs = np.array(self.store.obs, np.float64)
+        obs = self.store.obs
         for f in (i0, index):
-            m = obs[:, 0] == f
-            obs[m, 2:4] = unroll(cam, obs[m, 2:4], steps[f], r)
-        self.store.obs = [(int(f), int(lid), float(u), float(v)) for f, lid, u, v in obs]
+            m = obs.kf == f
+            obs.uv[m] = unroll(cam, obs.uv[m], steps[f], r)
 
     def _bootstrap_ba(self, poses: dict, k_index: int, baseline: Optional[float],
                       fix_last: bool = False) -> Optional[float]:

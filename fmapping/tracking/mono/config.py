@@ -20,6 +20,12 @@ class MonoConfig:
     init_max_frames: int = 60  # give up the bootstrap after this many frames
     init_min_flow_px: float = 6.0  # median track length (scaled to a 320-px-wide image) before trying
     ransac_px: float = 1.0
+    # weigh each track's pixel error by the shape of its corner (features.corner_covariance): points on edges and
+    # stripes count only across the edge, where LK can measure them (bench/results/anisotropic_tracks/)
+    anisotropic_tracks: bool = True
+    # ... and the bootstrap's two-view pose is searched from this many translation directions too, once a start
+    # would be accepted (the whitened cost of a nearly planar scene has local minima; 0: only RANSAC's start)
+    init_two_view_starts: int = 24
     tri_min_parallax_deg: float = 1.0
     tri_max_reproj_px: float = 2.0
     min_ref_points: int = 40

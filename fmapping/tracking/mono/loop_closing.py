@@ -36,11 +36,9 @@ class LoopClosing:
         for k in loop_candidates(self.store.kf_pose, index, scale, lc):
             if k not in self._kf_images:
                 continue
-            seen = [(o[1], o[2], o[3]) for o in self.store.obs if o[0] == k]
-            if len(seen) < lc.min_points:
+            lids, uv = self.store.obs.of_keyframe(k)
+            if len(lids) < lc.min_points:
                 continue
-            lids = np.array([o[0] for o in seen], np.int64)
-            uv = np.array([o[1:] for o in seen], np.float64)
             m = locate_in_keyframe(self.camera, self._kf_images[k], uv, np.stack([self.store.lm[i] for i in lids]),
                                    self.store.kf_pose[k], gray, self.store.kf_pose[index], self.cfg.klt, lc)
             if m is None:
@@ -70,11 +68,9 @@ class LoopClosing:
     def _cross_check(self, old: int, index: int, m: LoopMatch, gray: np.ndarray) -> Optional[tuple]:
         """The loop ``m`` (keyframe ``index`` in the map of keyframe ``old``) measured the other way
         round, from keyframe ``index``'s own landmarks (:func:`~fmapping.tracking.loop.cross_check`)."""
-        seen = [(o[1], o[2], o[3]) for o in self.store.obs if o[0] == index]
-        if len(seen) < self.cfg.loop.min_points:
+        lids, uv = self.store.obs.of_keyframe(index)
+        if len(lids) < self.cfg.loop.min_points:
             return None
-        lids = np.array([o[0] for o in seen], np.int64)
-        uv = np.array([o[1:] for o in seen], np.float64)
         return cross_check(self.camera, self._kf_images[old], self.store.kf_pose[old], m, gray, uv,
                            np.stack([self.store.lm[i] for i in lids]), self.store.kf_pose[index], self.cfg.klt,
                            self.cfg.loop)
@@ -106,10 +102,9 @@ class LoopClosing:
         out.update(keyframes=len(kfs), cost_before=stats["cost_before"], cost_after=stats["cost_after"])
         out["ba"] = lc.loop_ba and len(kfs) <= lc.loop_ba_max_keyframes
         if out["ba"]:
-            have = {int(o[1]) for o in self.store.obs if o[0] == index}
-            for lid, (u, v) in zip(old_lids[m.index], m.uv):
-                if int(lid) not in have:
-                    self.store.obs.append((index, int(lid), float(u), float(v)))
+            have = self.store.obs.of_keyframe(index)[0]
+            new = ~np.isin(old_lids[m.index], have)
+            self.store.obs.extend(index, old_lids[m.index][new], np.asarray(m.uv, np.float64).reshape(-1, 2)[new])
             graph_size = self.store.spread_about(kfs, old)
             prob = self.store.ba_problem(window=kfs, max_nfev=lc.loop_ba_max_nfev)
             if self._bg is not None and prob is not None:  # ba_thread: solved off the frame path

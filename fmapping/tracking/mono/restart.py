@@ -9,7 +9,7 @@ import numpy as np
 from fmapping.geometry import orthonormalize
 from fmapping.tracking.features import to_u8
 from fmapping.tracking.loop import locate_in_keyframe
-from fmapping.tracking.mono.store import Tracks
+from fmapping.tracking.mono.store import Observations, Tracks
 
 
 class Restart:
@@ -25,10 +25,10 @@ class Restart:
         if not self.initialized or self.scale_pending:
             return []
         kfs = self.store.window[-n:]
-        seen_by: dict = {k: {} for k in kfs}  # keyframe -> {landmark: pixel}, in one pass over the observations
-        for o in self.store.obs:
-            if o[0] in seen_by:
-                seen_by[o[0]][int(o[1])] = (o[2], o[3])
+        seen_by: dict = {}  # keyframe -> {landmark: pixel}
+        for k in kfs:
+            lids, uv = self.store.obs.of_keyframe(k)
+            seen_by[k] = {int(i): (float(u), float(v)) for i, (u, v) in zip(lids, uv)}
         out = []
         for k in kfs:
             seen = seen_by[k]
@@ -80,7 +80,8 @@ class Restart:
         self.store.kf_rgb = {index: rgb}
         self.store.window = [index]
         self.store.lm = list(world)
-        self.store.obs = [(index, lid, float(u), float(v)) for lid, (u, v) in enumerate(m.uv)]
+        self.store.obs = Observations()
+        self.store.obs.extend(index, np.arange(len(m.uv)), m.uv)
         tr = Tracks(m.uv, index)
         tr.lid = np.arange(len(world), dtype=np.int64)
         self.store.tracks = tr

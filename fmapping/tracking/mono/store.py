@@ -18,9 +18,11 @@ from fmapping.tracking.mono.config import MonoConfig
 
 class Tracks:
     """KLT tracks: current pixel (``uv``, in the image; ``geo``, unrolled for a rolling shutter, the
-    one geometry uses), landmark id (-1: none), first keyframe and the (unrolled) pixel there."""
+    one geometry uses), landmark id (-1: none), first keyframe and the (unrolled) pixel there, and the
+    shape of each track's position error (``cov``, (N, 2, 2):
+    :func:`~fmapping.tracking.features.corner_covariance` where it was detected; the identity when not given)."""
 
-    def __init__(self, uv: np.ndarray, kf: int):
+    def __init__(self, uv: np.ndarray, kf: int, cov: Optional[np.ndarray] = None):
         n = len(uv)
         self.uv = np.asarray(uv, np.float64).reshape(-1, 2).copy()
         self.geo = self.uv
@@ -28,12 +30,14 @@ class Tracks:
         self.first_kf = np.full(n, kf, np.int64)
         self.uv_first = self.uv.copy()
         self.tid = np.arange(n)
+        self.cov = _covariances(cov, n)
 
     def keep(self, mask: np.ndarray) -> None:
-        self.uv, self.geo, self.lid, self.first_kf, self.uv_first, self.tid = (
-            self.uv[mask], self.geo[mask], self.lid[mask], self.first_kf[mask], self.uv_first[mask], self.tid[mask])
+        self.uv, self.geo, self.lid, self.first_kf, self.uv_first, self.tid, self.cov = (
+            self.uv[mask], self.geo[mask], self.lid[mask], self.first_kf[mask], self.uv_first[mask], self.tid[mask],
+            self.cov[mask])
 
-    def add(self, uv: np.ndarray, kf: int, geo: Optional[np.ndarray] = None) -> None:
+    def add(self, uv: np.ndarray, kf: int, geo: Optional[np.ndarray] = None, cov: Optional[np.ndarray] = None) -> None:
         n = len(uv)
         geo = uv if geo is None else geo
         self.uv = np.concatenate([self.uv, uv])
@@ -43,9 +47,112 @@ class Tracks:
         self.uv_first = np.concatenate([self.uv_first, geo])
         start = int(self.tid.max()) + 1 if len(self.tid) else 0
         self.tid = np.concatenate([self.tid, np.arange(start, start + n)])
+        self.cov = np.concatenate([self.cov, _covariances(cov, n)])
 
     def __len__(self) -> int:
         return len(self.uv)
+
+
+def _covariances(cov: Optional[np.ndarray], n: int) -> np.ndarray:
+    """``cov`` as (n, 2, 2) float64, or n identities."""
+    if cov is None:
+        return np.tile(np.eye(2), (n, 1, 1))
+    cov = np.asarray(cov, np.float64).reshape(-1, 2, 2)
+    if len(cov) != n:
+        raise ValueError(f"Tracks: {n} pixels but {len(cov)} covariances")
+    return cov
+
+
+class Observations:
+    """The landmark observations ``(keyframe, landmark id, u, v)`` of a :class:`KeyframeStore`, in the order they
+    were made, as arrays that grow in place. They accumulate over the sequence (25k at 1,000 frames): a Python
+    list of tuples cost every keyframe a conversion of all of them and the loop detection a scan per candidate;
+    here those are vectorised over the arrays. ``kf``, ``lid`` and ``uv`` are views of the rows (writing ``uv``
+    writes the table); iterating yields the rows as tuples."""
+
+    def __init__(self):
+        self._kf = np.zeros(0, np.int64)
+        self._lid = np.zeros(0, np.int64)
+        self._uv = np.zeros((0, 2), np.float64)
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def kf(self) -> np.ndarray:
+        return self._kf[: self._n]
+
+    @property
+    def lid(self) -> np.ndarray:
+        return self._lid[: self._n]
+
+    @property
+    def uv(self) -> np.ndarray:
+        return self._uv[: self._n]
+
+    def __iter__(self):
+        return iter([(int(k), int(i), float(u), float(v)) for k, i, (u, v) in zip(self.kf, self.lid, self.uv)])
+
+    def extend(self, kf, lid, uv) -> None:
+        """Append rows: keyframes ``kf`` (an int or one per row), landmarks ``lid`` (M,), pixels ``uv`` (M, 2)."""
+        lid = np.asarray(lid, np.int64).reshape(-1)
+        uv = np.asarray(uv, np.float64).reshape(-1, 2)
+        m = len(lid)
+        if len(uv) != m:
+            raise ValueError(f"Observations.extend: {m} landmarks but {len(uv)} pixels")
+        end = self._n + m
+        if end > len(self._kf):  # amortised growth: the arrays at least double
+            cap = max(end, 2 * len(self._kf), 256)
+            self._kf = np.resize(self._kf, cap)
+            self._lid = np.resize(self._lid, cap)
+            self._uv = np.resize(self._uv, (cap, 2))
+        self._kf[self._n:end] = kf
+        self._lid[self._n:end] = lid
+        self._uv[self._n:end] = uv
+        self._n = end
+
+    def append(self, kf: int, lid: int, u: float, v: float) -> None:
+        self.extend(kf, [lid], [[u, v]])
+
+    def rows(self) -> np.ndarray:
+        """A copy of the table as (N, 4) float64: keyframe, landmark id, u, v."""
+        return np.column_stack([self.kf, self.lid, self.uv]).astype(np.float64)
+
+    def of_keyframe(self, kf: int) -> tuple[np.ndarray, np.ndarray]:
+        """Landmark ids (M,) and pixels (M, 2) keyframe ``kf`` observed, in table order (copies)."""
+        m = self.kf == kf
+        return self.lid[m].copy(), self.uv[m].copy()
+
+    def keep(self, mask: np.ndarray) -> None:
+        """Keep only the rows where ``mask`` (N,) is true, in their order."""
+        mask = np.asarray(mask, bool)
+        kf, lid, uv = self.kf[mask], self.lid[mask], self.uv[mask]
+        self._kf, self._lid, self._uv, self._n = kf.copy(), lid.copy(), uv.copy(), len(kf)
+
+    def drop(self, pairs) -> None:
+        """Drop every row whose (keyframe, landmark id) is in ``pairs``."""
+        pairs = np.asarray(list(pairs), np.int64).reshape(-1, 2)
+        if len(pairs):
+            self.keep(~np.isin(_pair_keys(self.kf, self.lid), _pair_keys(pairs[:, 0], pairs[:, 1])))
+
+    def first_keyframes(self) -> dict:
+        """{landmark id: the keyframe of its first remaining row}."""
+        lids, first = np.unique(self.lid, return_index=True)
+        return dict(zip(lids.tolist(), self.kf[first].tolist()))
+
+    @classmethod
+    def from_rows(cls, rows) -> "Observations":
+        """A table of rows ``(keyframe, landmark id, u, v)`` (an (N, 4) array or a list of tuples)."""
+        out = cls()
+        r = np.asarray(rows, np.float64).reshape(-1, 4)
+        out.extend(r[:, 0].astype(np.int64), r[:, 1].astype(np.int64), r[:, 2:4])
+        return out
+
+
+def _pair_keys(kf: np.ndarray, lid: np.ndarray) -> np.ndarray:
+    """One int64 per (keyframe, landmark id) pair (both below 2**31)."""
+    return (np.asarray(kf, np.int64) << 32) | np.asarray(lid, np.int64)
 
 
 class KeyframeStore:
@@ -62,7 +169,7 @@ class KeyframeStore:
         self.kf_rgb: dict = {}  # window keyframes' images
         self.window: list = []  # keyframe indices in the BA window
         self.lm: list = []  # landmark world points
-        self.obs: list = []  # (kf index, landmark id, u, v)
+        self.obs = Observations()  # (kf index, landmark id, u, v)
         self.rel: dict = {}  # frame index -> (keyframe index, inv(c2w_kf) @ c2w)
         self.ba_stats: list = []  # per bundle adjustment: keyframes, points, rms before / after, ms
 
@@ -76,8 +183,7 @@ class KeyframeStore:
         self.kf_rgb[index] = rgb
         # observations of known landmarks
         has = tr.lid >= 0
-        for j in np.flatnonzero(has):
-            self.obs.append((index, int(tr.lid[j]), tr.geo[j, 0], tr.geo[j, 1]))
+        self.obs.extend(index, tr.lid[has], tr.geo[has])
         # triangulate the others between their first keyframe and this one
         for kf in np.unique(tr.first_kf[~has]):
             if kf not in self.kf_pose or kf == index:
@@ -89,8 +195,8 @@ class KeyframeStore:
                 lid = len(self.lm)
                 self.lm.append(p)
                 tr.lid[j] = lid
-                self.obs.append((int(kf), lid, tr.uv_first[j, 0], tr.uv_first[j, 1]))
-                self.obs.append((index, lid, tr.geo[j, 0], tr.geo[j, 1]))
+                self.obs.append(int(kf), lid, tr.uv_first[j, 0], tr.uv_first[j, 1])
+                self.obs.append(index, lid, tr.geo[j, 0], tr.geo[j, 1])
         self.window.append(index)
         if len(self.window) > c.window:
             old = self.window.pop(0)
@@ -118,10 +224,7 @@ class KeyframeStore:
 
     def first_keyframes(self) -> dict:
         """{landmark id: the keyframe of its first remaining observation}: whose pose it moves with."""
-        first: dict = {}
-        for o in self.obs:
-            first.setdefault(int(o[1]), int(o[0]))
-        return first
+        return self.obs.first_keyframes()
 
     def spread_about(self, kfs: list, about: int) -> float:
         """Mean distance of the centres of keyframes ``kfs`` from keyframe ``about``'s."""
@@ -161,9 +264,9 @@ class KeyframeStore:
         there is too little to adjust."""
         c = self.cfg
         win = list(self.window if window is None else window)
-        if not self.obs:
+        if not len(self.obs):
             return None
-        obs = np.array(self.obs, dtype=np.float64)
+        obs = self.obs.rows()
         kf_of = obs[:, 0].astype(np.int64)
         inwin = np.isin(kf_of, win)
         extra: list = []
@@ -207,7 +310,7 @@ class KeyframeStore:
         badset: set = set()
         if bad.any():
             badset = {(int(a), int(b)) for a, b in obs[bad][:, :2]}
-            self.obs = [o for o in self.obs if (int(o[0]), int(o[1])) not in badset]
+            self.obs.drop(badset)
             bad_l = {b for _, b in badset}
             tr = self.tracks
             for j in np.flatnonzero(np.isin(tr.lid, list(bad_l))):
