@@ -403,16 +403,17 @@ def hemisphere_directions(n: int) -> np.ndarray:
 
 
 def refine_two_view_whitened(camera: PinholeCamera, rot_ab: np.ndarray, t_ab: np.ndarray, uv_a: np.ndarray,
-                             uv_b: np.ndarray, cov: np.ndarray, inlier_px: float = 1.0,
-                             starts: int = 0) -> Optional[tuple]:
+                             uv_b: np.ndarray, cov: np.ndarray, inlier_px: float = 1.0, starts: int = 0,
+                             distinct_deg: float = 15.0, margin: float = 0.1) -> Optional[tuple]:
     """Relative rotation and unit translation (a -> b) fitted to every pair by robust least squares (Huber at
     ``inlier_px``) on :func:`epipolar_whitened_px`, then again on the pairs within ``inlier_px``. Returns
-    ``(rot_ab, t_ab, inlier mask)``, or None when fewer than 20 pairs fit.
+    ``(rot_ab, t_ab, inlier mask)``, or None when fewer than 20 pairs fit or the fit is ambiguous.
 
     With ``starts`` > 0 the fit also starts from that many translation directions spread over the half sphere
-    (the rotation from ``rot_ab``) and keeps the lowest cost: on a nearly planar scene seen with a short
-    baseline the cost has local minima tens of degrees of translation apart, and the start that RANSAC's
-    isotropic error chose can sit in the wrong one."""
+    (the rotation from ``rot_ab``) and keeps the lowest cost. On a nearly planar scene seen over a short
+    baseline the cost has several minima tens of degrees of translation apart, and RANSAC's isotropic start can
+    sit in a wrong one; when a minimum more than ``distinct_deg`` away from the best costs less than
+    ``1 + margin`` times as much, the pairs cannot tell the two apart yet: None (wait for more baseline)."""
     from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
 
@@ -429,11 +430,14 @@ def refine_two_view_whitened(camera: PinholeCamera, rot_ab: np.ndarray, t_ab: np
         return least_squares(fun, x, loss="huber", f_scale=inlier_px, max_nfev=nfev)
 
     every = np.ones(len(uv_a), bool)
-    best = fit(np.r_[np.zeros(3), t0], every, 200)
-    for d in hemisphere_directions(starts) if starts > 0 else []:
-        sol = fit(np.r_[np.zeros(3), d], every, 60)
-        if sol.cost < best.cost:
-            best = sol
+    found = [fit(np.r_[np.zeros(3), t0], every, 200)]
+    found += [fit(np.r_[np.zeros(3), d], every, 60) for d in (hemisphere_directions(starts) if starts > 0 else [])]
+    best = min(found, key=lambda sol: sol.cost)
+    t_best = pose(best.x)[1]
+    apart = [sol.cost for sol in found
+             if abs(float(pose(sol.x)[1] @ t_best)) < math.cos(math.radians(distinct_deg))]
+    if apart and min(apart) < (1.0 + margin) * best.cost:
+        return None
     x = best.x
     inl = np.abs(epipolar_whitened_px(camera, *pose(x), uv_a, uv_b, cov)) < inlier_px
     if inl.sum() < 20:
