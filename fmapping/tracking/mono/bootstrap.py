@@ -93,14 +93,18 @@ class Bootstrap:
                         and tv.median_parallax_deg >= c.init_min_parallax_deg
                         and np.radians(tv.median_parallax_deg) * self.camera.fx >= need_px)
 
-            tv = two_view_init(self.camera, tr.uv_first, tr.uv, c.ransac_px, c.tri_min_parallax_deg, cov=cov)
+            tv = two_view_init(self.camera, tr.uv_first, tr.uv, c.ransac_px, c.tri_min_parallax_deg)
             if not usable(tv):
                 return None
-            if cov is not None and c.init_two_view_starts > 0:  # the start it would take: search for a better one
-                tv = two_view_init(self.camera, tr.uv_first, tr.uv, c.ransac_px, c.tri_min_parallax_deg, cov=cov,
+            if cov is not None:
+                # the isotropic pose is a start the bootstrap would take; on edges and stripes it can be tens of
+                # degrees off. The whitened fit (searched from init_two_view_starts directions) replaces it
+                # unless it is ambiguous or leaves too few points: the time to start stays the isotropic one's
+                tw = two_view_init(self.camera, tr.uv_first, tr.uv, c.ransac_px, c.tri_min_parallax_deg, cov=cov,
                                    starts=c.init_two_view_starts)
-                if not usable(tv):
-                    return None
+                if (tw is not None and tw.valid.sum() >= c.init_min_points
+                        and tw.median_parallax_deg >= c.init_min_parallax_deg):
+                    tv = tw
             base = anchor_baseline(index) if anchor_baseline is not None else None
             if base is not None and base > 1e-4:
                 s, how = float(base), "anchor"  # recoverPose's translation has unit norm

@@ -23,8 +23,9 @@ class MonoConfig:
     # weigh each track's pixel error by the shape of its corner (features.corner_covariance): points on edges and
     # stripes count only across the edge, where LK can measure them (bench/results/anisotropic_tracks/)
     anisotropic_tracks: bool = True
-    # ... and the bootstrap's two-view pose is searched from this many translation directions too, once a start
-    # would be accepted (the whitened cost of a nearly planar scene has local minima; 0: only RANSAC's start)
+    # ... and the bootstrap's two-view pose, once the isotropic one would be accepted, is fitted again on the
+    # whitened error from this many translation directions too (its cost on a nearly planar scene has local
+    # minima; 0: from RANSAC's start only)
     init_two_view_starts: int = 24
     tri_min_parallax_deg: float = 1.0
     tri_max_reproj_px: float = 2.0
