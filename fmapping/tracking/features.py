@@ -415,35 +415,48 @@ def refine_two_view_whitened(camera: PinholeCamera, rot_ab: np.ndarray, t_ab: np
     sit in a wrong one; when a minimum more than ``distinct_deg`` away from the best costs less than
     ``1 + margin`` times as much, the pairs cannot tell the two apart yet: None (wait for more baseline)."""
     from scipy.optimize import least_squares
-    from scipy.spatial.transform import Rotation
 
     r0 = np.asarray(rot_ab, np.float64)
     uv_a = np.asarray(uv_a, np.float64).reshape(-1, 2)
     uv_b = np.asarray(uv_b, np.float64).reshape(-1, 2)
     t0 = np.asarray(t_ab, np.float64).reshape(3) / max(np.linalg.norm(t_ab), 1e-12)
+    # the same error as epipolar_whitened_px, in normalised image coordinates (precomputed: this runs thousands
+    # of times): pixel covariances scaled by 1 / f per axis, the pixels as bearings
+    xa, xb = _bearings(camera, uv_a), _bearings(camera, uv_b)
+    inv_f = np.array([1.0 / camera.fx, 1.0 / camera.fy])
+    cov_n = np.asarray(cov, np.float64) * inv_f[:, None] * inv_f[None, :]
 
     def pose(x):
-        return Rotation.from_rotvec(x[:3]).as_matrix() @ r0, x[3:] / max(np.linalg.norm(x[3:]), 1e-12)
+        return cv2.Rodrigues(x[:3])[0] @ r0, x[3:] / max(np.linalg.norm(x[3:]), 1e-12)
+
+    def residuals(p, m):
+        rot, t = pose(p)
+        e_mat = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]]) @ rot
+        a, b, c = xa[m], xb[m], cov_n[m]
+        exa, etxb = a @ e_mat.T, b @ e_mat
+        ga, gb = etxb[:, :2], exa[:, :2]
+        var = ((ga[:, :, None] * c).sum(1) * ga).sum(1) + ((gb[:, :, None] * c).sum(1) * gb).sum(1)
+        return (b * exa).sum(1) / np.sqrt(np.maximum(var, 1e-30))
 
     def fit(x, m, nfev):
-        fun = lambda p: epipolar_whitened_px(camera, *pose(p), uv_a[m], uv_b[m], cov[m])  # noqa: E731
-        return least_squares(fun, x, loss="huber", f_scale=inlier_px, max_nfev=nfev)
+        return least_squares(residuals, x, loss="huber", f_scale=inlier_px, max_nfev=nfev, args=(m,))
+
+    def distinct(a, b) -> bool:
+        return abs(float(pose(a.x)[1] @ pose(b.x)[1])) < math.cos(math.radians(distinct_deg))
 
     every = np.ones(len(uv_a), bool)
     found = [fit(np.r_[np.zeros(3), t0], every, 200)]
     found += [fit(np.r_[np.zeros(3), d], every, 60) for d in (hemisphere_directions(starts) if starts > 0 else [])]
     best = min(found, key=lambda sol: sol.cost)
-    t_best = pose(best.x)[1]
-    apart = [sol.cost for sol in found
-             if abs(float(pose(sol.x)[1] @ t_best)) < math.cos(math.radians(distinct_deg))]
+    apart = [sol.cost for sol in found if distinct(sol, best)]
     if apart and min(apart) < (1.0 + margin) * best.cost:
         return None
     x = best.x
-    inl = np.abs(epipolar_whitened_px(camera, *pose(x), uv_a, uv_b, cov)) < inlier_px
+    inl = np.abs(residuals(x, every)) < inlier_px
     if inl.sum() < 20:
         return None
     x = fit(x, inl, 200).x  # again on its inliers
-    inl = np.abs(epipolar_whitened_px(camera, *pose(x), uv_a, uv_b, cov)) < inlier_px
+    inl = np.abs(residuals(x, every)) < inlier_px
     if inl.sum() < 20:
         return None
     rot, t = pose(x)
