@@ -501,7 +501,14 @@ def two_view_init(camera: PinholeCamera, uv_a: np.ndarray, uv_b: np.ndarray, ran
             front.append((triangulate(camera, np.eye(4), np.linalg.inv(t_ab), uv_a[inl], uv_b[inl], 0.0,
                                       4 * ransac_px)[1].sum(), sign))
         t = max(front)[1] * t
-        refine = False  # the bundle adjustment's isotropic pixel error would pull the pose back
+        # points (landmarks to be) only from the pairs that also fit the pose in plain pixels: the bundle
+        # adjustments after the bootstrap weigh every pixel error alike, and an edge point's error along its edge
+        # would pull the pose back
+        eye = np.broadcast_to(np.eye(2), (len(uv_a), 2, 2))
+        inl &= np.abs(epipolar_whitened_px(camera, r, t.reshape(-1), uv_a, uv_b, eye)) < ransac_px
+        if inl.sum() < 20:
+            return None
+        refine = False  # the two-view bundle adjustment's isotropic error would pull the pose back too
     # recoverPose gives x_b = R x_a + t  (a -> b); c2w_b = inv([R|t]) with a at the identity
     t_ab = np.eye(4)
     t_ab[:3, :3] = r
