@@ -452,7 +452,8 @@ def _two_view_errors(tv, rot, t) -> tuple:
 def test_two_view_whitened_by_the_tracks_covariances_undoes_the_edge_lag(seed):
     """Points on edges whose tracks lag along the edge pull the isotropic two-view pose far off (here the
     translation 140 deg or more). Weighed by their covariances (and searched from 24 translation directions)
-    the pose comes back within a few degrees. On a nearly planar wall (2 cm relief) several minima cost about
+    the pose comes back within a few degrees, and only pairs that fit it in plain pixels become points. On a
+    nearly planar wall (2 cm relief) several minima cost about
     the same: the whitened fit then declines (None) rather than pick one."""
     from fmapping.tracking.features import two_view_init
 
@@ -460,7 +461,8 @@ def test_two_view_whitened_by_the_tracks_covariances_undoes_the_edge_lag(seed):
     iso = two_view_init(cam, ua, ub, 1.0, 0.5)
     assert iso is None or _two_view_errors(iso, rot, t)[1] > 20.0
     tv = two_view_init(cam, ua, ub, 1.0, 0.5, cov=cov, starts=24)
-    assert tv is not None and tv.valid.sum() > 100
+    # its points: the pairs that fit in plain pixels too (the corners, 20 %, and edge points with little lag)
+    assert tv is not None and 40 < tv.valid.sum() < 0.5 * len(ua)
     drot, dt = _two_view_errors(tv, rot, t)
     assert drot < 1.0 and dt < 5.0, (drot, dt)
     cam, ua, ub, cov, rot, t = _edge_lag_views(0.02, seed)
