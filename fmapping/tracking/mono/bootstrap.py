@@ -15,6 +15,12 @@ from fmapping.tracking.mono.store import Tracks
 from fmapping.tracking.rolling_shutter import rotation_step, unroll
 
 
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle (degrees) between the lines of vectors ``a`` and ``b`` (their signs aside)."""
+    c = abs(float(a @ b)) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-12)
+    return float(np.degrees(np.arccos(min(c, 1.0))))
+
+
 def _parallax_deg(c2w_a: np.ndarray, c2w_b: np.ndarray, world: np.ndarray) -> np.ndarray:
     """Angle (degrees) between the rays from the two camera centres to each world point (N, 3)."""
     ra = world - c2w_a[:3, 3]
@@ -103,7 +109,8 @@ class Bootstrap:
                 tw = two_view_init(self.camera, tr.uv_first, tr.uv, c.ransac_px, c.tri_min_parallax_deg, cov=cov,
                                    starts=c.init_two_view_starts)
                 if (tw is not None and tw.valid.sum() >= c.init_min_points
-                        and tw.median_parallax_deg >= c.init_min_parallax_deg):
+                        and tw.median_parallax_deg >= c.init_min_parallax_deg
+                        and _angle_deg(tw.c2w_b[:3, 3], tv.c2w_b[:3, 3]) > c.init_whitened_min_change_deg):
                     tv = tw
             base = anchor_baseline(index) if anchor_baseline is not None else None
             if base is not None and base > 1e-4:

@@ -27,6 +27,10 @@ class MonoConfig:
     # whitened error from this many translation directions too (its cost on a nearly planar scene has local
     # minima; 0: from RANSAC's start only)
     init_two_view_starts: int = 24
+    # ... and replaces the isotropic pose only when their translations differ by more than this: within it
+    # either is as good (the rest of the front end weighs pixel errors alike), beyond it the isotropic one is
+    # the aperture problem's
+    init_whitened_min_change_deg: float = 15.0
     tri_min_parallax_deg: float = 1.0
     tri_max_reproj_px: float = 2.0
     min_ref_points: int = 40
