@@ -662,7 +662,15 @@ def test_the_tracker_service_publishes_what_a_stop_releases(room320):
         f = ds[i]
         session.deliver(keys.poses("gt"), P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
         session.deliver(keys.frames, P.encode(P.frame_from_dataset(f, seq=i)))
-    time.sleep(1.0)
+
+    def tracked() -> int:  # frames tracked, as the service's status heartbeat reports them
+        sts = [P.decode(b, P.Status) for b in session.published.get(keys.status("tracker"), [])]
+        return max((int(st.counters.get("frames_tracked", 0)) for st in sts), default=0)
+
+    deadline = time.monotonic() + 60  # every frame tracked before the stop (the bootstrap's search takes ~0.5 s)
+    while tracked() < 11 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert tracked() == 11
     assert session.published.get(keys.poses("tracker"), []) == []  # held for the late anchor (frame 14)
     session.deliver(keys.control, P.encode(P.Control(command="stop")))
     t.join(60)

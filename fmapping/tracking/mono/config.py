@@ -26,7 +26,7 @@ class MonoConfig:
     # ... and the bootstrap's two-view pose, once the isotropic one would be accepted, is fitted again on the
     # whitened error from this many translation directions too (its cost on a nearly planar scene has local
     # minima; 0: from RANSAC's start only)
-    init_two_view_starts: int = 24
+    init_two_view_starts: int = 8
     # ... and replaces the isotropic pose only when their translations differ by more than this: within it
     # either is as good (the rest of the front end weighs pixel errors alike), beyond it the isotropic one is
     # the aperture problem's
