@@ -360,7 +360,7 @@ def corner_covariance(gray: np.ndarray, uv: np.ndarray, cfg: KltConfig, cap: flo
     front end assumes. A point on an edge or a stripe gets up to ``cap`` times that variance along the edge,
     where LK cannot tell how far it moved (the aperture problem) and settles near its starting guess, so its
     error there is systematic, not noise. On a widened synthetic room whose first frames see a striped,
-    nearly planar wall, such points pulled the two-view translation 15-25 deg off the true direction
+    nearly planar wall, such points pulled the two-view translation 25-56 deg off the true direction
     (bench/results/anisotropic_tracks/)."""
     g = np.asarray(gray, np.float32)
     ix = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8.0
