@@ -381,17 +381,28 @@ def epipolar_whitened_px(camera: PinholeCamera, rot_ab: np.ndarray, t_ab: np.nda
     """Signed epipolar error (N,) of pixel pairs under ``x_b = rot_ab x_a + t_ab``, each divided by its standard
     deviation under the pairs' position covariances ``cov`` (N, 2, 2), the same for both pixels (first order:
     the Sampson error with anisotropic pixel noise; with the identity it is the Sampson distance in pixels)."""
+    return _whitened_epipolar(_essential(rot_ab, t_ab), _bearings(camera, uv_a), _bearings(camera, uv_b),
+                              _normalised_cov(camera, cov))
+
+
+def _essential(rot_ab: np.ndarray, t_ab: np.ndarray) -> np.ndarray:
     t = np.asarray(t_ab, np.float64).reshape(3)
-    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-    k_inv = np.linalg.inv(camera.K)
-    f = k_inv.T @ tx @ np.asarray(rot_ab, np.float64) @ k_inv
-    xa = np.c_[np.asarray(uv_a, np.float64).reshape(-1, 2), np.ones(len(uv_a))]
-    xb = np.c_[np.asarray(uv_b, np.float64).reshape(-1, 2), np.ones(len(uv_b))]
-    fxa, ftxb = xa @ f.T, xb @ f
-    e = (xb * fxa).sum(1)
-    ga, gb = ftxb[:, :2], fxa[:, :2]  # d e / d uv_a, d e / d uv_b
-    var = np.einsum("ni,nij,nj->n", ga, cov, ga) + np.einsum("ni,nij,nj->n", gb, cov, gb)
-    return e / np.sqrt(np.maximum(var, 1e-30))
+    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]]) @ np.asarray(rot_ab, np.float64)
+
+
+def _normalised_cov(camera: PinholeCamera, cov: np.ndarray) -> np.ndarray:
+    """Pixel covariances (N, 2, 2) in normalised image coordinates (scaled by 1 / f per axis)."""
+    inv_f = np.array([1.0 / camera.fx, 1.0 / camera.fy])
+    return np.asarray(cov, np.float64) * inv_f[:, None] * inv_f[None, :]
+
+
+def _whitened_epipolar(e_mat: np.ndarray, xa: np.ndarray, xb: np.ndarray, cov_n: np.ndarray) -> np.ndarray:
+    """:func:`epipolar_whitened_px` on bearings ``xa``, ``xb`` (N, 3) with covariances in normalised units (the
+    ratio is the same in pixels): ``e = xb^T E xa`` over its first-order standard deviation."""
+    exa, etxb = xa @ e_mat.T, xb @ e_mat
+    ga, gb = etxb[:, :2], exa[:, :2]  # d e / d xa, d e / d xb (their image-plane parts)
+    var = ((ga[:, :, None] * cov_n).sum(1) * ga).sum(1) + ((gb[:, :, None] * cov_n).sum(1) * gb).sum(1)
+    return (xb * exa).sum(1) / np.sqrt(np.maximum(var, 1e-30))
 
 
 def hemisphere_directions(n: int) -> np.ndarray:
@@ -420,23 +431,14 @@ def refine_two_view_whitened(camera: PinholeCamera, rot_ab: np.ndarray, t_ab: np
     uv_a = np.asarray(uv_a, np.float64).reshape(-1, 2)
     uv_b = np.asarray(uv_b, np.float64).reshape(-1, 2)
     t0 = np.asarray(t_ab, np.float64).reshape(3) / max(np.linalg.norm(t_ab), 1e-12)
-    # the same error as epipolar_whitened_px, in normalised image coordinates (precomputed: this runs thousands
-    # of times): pixel covariances scaled by 1 / f per axis, the pixels as bearings
-    xa, xb = _bearings(camera, uv_a), _bearings(camera, uv_b)
-    inv_f = np.array([1.0 / camera.fx, 1.0 / camera.fy])
-    cov_n = np.asarray(cov, np.float64) * inv_f[:, None] * inv_f[None, :]
+    # bearings and normalised covariances once: the error is evaluated thousands of times
+    xa, xb, cov_n = _bearings(camera, uv_a), _bearings(camera, uv_b), _normalised_cov(camera, cov)
 
     def pose(x):
         return cv2.Rodrigues(x[:3])[0] @ r0, x[3:] / max(np.linalg.norm(x[3:]), 1e-12)
 
     def residuals(p, m):
-        rot, t = pose(p)
-        e_mat = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]]) @ rot
-        a, b, c = xa[m], xb[m], cov_n[m]
-        exa, etxb = a @ e_mat.T, b @ e_mat
-        ga, gb = etxb[:, :2], exa[:, :2]
-        var = ((ga[:, :, None] * c).sum(1) * ga).sum(1) + ((gb[:, :, None] * c).sum(1) * gb).sum(1)
-        return (b * exa).sum(1) / np.sqrt(np.maximum(var, 1e-30))
+        return _whitened_epipolar(_essential(*pose(p)), xa[m], xb[m], cov_n[m])
 
     def fit(x, m, nfev):
         return least_squares(residuals, x, loss="huber", f_scale=inlier_px, max_nfev=nfev, args=(m,))
