@@ -37,7 +37,8 @@ class Tracks:
             self.uv[mask], self.geo[mask], self.lid[mask], self.first_kf[mask], self.uv_first[mask], self.tid[mask],
             self.cov[mask])
 
-    def add(self, uv: np.ndarray, kf: int, geo: Optional[np.ndarray] = None, cov: Optional[np.ndarray] = None) -> None:
+    def add(self, uv: np.ndarray, kf: int, geo: Optional[np.ndarray] = None) -> None:
+        """Tracks starting at keyframe ``kf`` (their error shape the identity: only the bootstrap's are shaped)."""
         n = len(uv)
         geo = uv if geo is None else geo
         self.uv = np.concatenate([self.uv, uv])
@@ -47,7 +48,7 @@ class Tracks:
         self.uv_first = np.concatenate([self.uv_first, geo])
         start = int(self.tid.max()) + 1 if len(self.tid) else 0
         self.tid = np.concatenate([self.tid, np.arange(start, start + n)])
-        self.cov = np.concatenate([self.cov, _covariances(cov, n)])
+        self.cov = np.concatenate([self.cov, _covariances(None, n)])
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -140,14 +141,6 @@ class Observations:
         """{landmark id: the keyframe of its first remaining row}."""
         lids, first = np.unique(self.lid, return_index=True)
         return dict(zip(lids.tolist(), self.kf[first].tolist()))
-
-    @classmethod
-    def from_rows(cls, rows) -> "Observations":
-        """A table of rows ``(keyframe, landmark id, u, v)`` (an (N, 4) array or a list of tuples)."""
-        out = cls()
-        r = np.asarray(rows, np.float64).reshape(-1, 4)
-        out.extend(r[:, 0].astype(np.int64), r[:, 1].astype(np.int64), r[:, 2:4])
-        return out
 
 
 def _pair_keys(kf: np.ndarray, lid: np.ndarray) -> np.ndarray:
