@@ -109,10 +109,12 @@ def make_scene(out: Path, opts: LauncherOptions) -> Path:
 def mapper_inbox(opts: LauncherOptions) -> dict:
     """The mapper's inbox bounds of ``launcher.mapper_inbox_frames`` / ``mapper_inbox_mb`` as its options
     (unset: left to the service's defaults), checked before any process starts."""
+    from services.mapper.intake import inbox_frames_ok, inbox_mib_ok
+
     frames, mb = opts.mapper_inbox_frames, opts.mapper_inbox_mb
-    if frames is not None and (isinstance(frames, bool) or not isinstance(frames, int) or frames < 1):
+    if frames is not None and not inbox_frames_ok(frames):
         raise ValueError(f"launcher.mapper_inbox_frames must be an integer >= 1, got {frames!r}")
-    if mb is not None and (isinstance(mb, bool) or not isinstance(mb, (int, float)) or not 0 < mb < float("inf")):
+    if mb is not None and not inbox_mib_ok(mb):
         raise ValueError(f"launcher.mapper_inbox_mb must be a number > 0 and finite (MiB), got {mb!r}")
     return {"inbox_frames": frames, "inbox_mb": None if mb is None else float(mb)}
 

@@ -22,7 +22,7 @@ from services.core_support import MIB
 from services.mapper.core import (
     POSE_SOURCES, MapperCore, MapperServiceOptions, await_source_final, load_mapper_config,
 )
-from services.mapper.intake import FRAME_BYTES, FRAME_CAPACITY, book_for, frame_rank
+from services.mapper.intake import FRAME_BYTES, FRAME_CAPACITY, book_for, frame_rank, inbox_frames_ok, inbox_mib_ok
 from services.process import (FirstMessage, add_first_message_arg, available_cpus, run_main, service_parser,
                               set_torch_threads, setup_logging)
 from services.transport import Service
@@ -92,7 +92,7 @@ MAX_BYTES = {"end": 1 * MIB, "control": 1 * MIB, "status": 1 * MIB, "poses": 8 *
 def main(argv=None, session=None, keys=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.inbox_frames < 1 or not 0 < args.inbox_mb < float("inf"):
+    if not (inbox_frames_ok(args.inbox_frames) and inbox_mib_ok(args.inbox_mb)):
         parser.error(f"--inbox-frames must be >= 1 and --inbox-mb > 0 and finite (got {args.inbox_frames}, "
                      f"{args.inbox_mb})")
     setup_logging(args.log_level, "mapper")

@@ -33,6 +33,16 @@ from services.core_support import MIB
 
 FRAME_CAPACITY = 512
 FRAME_BYTES = 384 * MIB
+
+
+def inbox_frames_ok(frames) -> bool:
+    """A frames-inbox bound in frames: an integer of at least 1."""
+    return isinstance(frames, int) and not isinstance(frames, bool) and frames >= 1
+
+
+def inbox_mib_ok(mib) -> bool:
+    """A frames-inbox bound in MiB: a number above 0, finite."""
+    return isinstance(mib, (int, float)) and not isinstance(mib, bool) and 0 < mib < float("inf")
 NOT_KEYFRAME, UNKNOWN, KEYFRAME = 0, 1, 2  # eviction ranks: lowest goes first
 
 
