@@ -185,7 +185,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
             new, ok, self._gain_step = klt_track_gain(self._last_gray, gray, tr.uv, self.cfg.klt,
                                                       gain=self._gain_step)
             kf_gray = getattr(self, "_kf_gray", None)
-            if self.cfg.klt_from_keyframe and kf_gray is not None and getattr(tr, "uv_kf", None) is not None:
+            if self.cfg.klt_from_keyframe and kf_gray is not None and tr.uv_kf is not None:
                 # refine from the keyframe image: positions no longer accumulate frame-to-frame drift
                 # (with klt.max_width the chained pass ran in halved images: this one refines at full size)
                 ref, ok2, self._gain_kf = klt_track_gain(kf_gray, gray, tr.uv_kf,
@@ -196,8 +196,6 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
                 new = np.where(good[:, None], ref, new)
             tr.uv = new.astype(np.float64)
             tr.geo = self._geo(tr.uv)
-            if getattr(tr, "uv_kf", None) is not None:
-                tr.uv_kf = tr.uv_kf[ok]
             tr.keep(ok)
         self._last_gray = gray
 
@@ -218,7 +216,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         self._kf_index = index
         self.store.rel[index] = (index, np.eye(4))
         tr = Tracks(detect_corners(gray, self.cfg.klt).astype(np.float64), index)
-        tr.uv_kf = tr.uv.astype(np.float32).copy()
+        tr.mark_keyframe(index)
         self.store.tracks = tr
         self._kf_gray = gray
         self._gain_kf = 1.0
@@ -403,7 +401,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         newc = detect_corners(gray, c.klt, existing=tr.uv)
         if len(newc):
             tr.add(newc.astype(np.float64), index, self._geo(newc.astype(np.float64)))
-        tr.uv_kf = tr.uv.astype(np.float32).copy()
+        tr.mark_keyframe(index)
         self._kf_gray = gray
         self._gain_kf = 1.0
 

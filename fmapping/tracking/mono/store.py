@@ -20,10 +20,16 @@ class Tracks:
     """KLT tracks: current pixel (``uv``, in the image; ``geo``, unrolled for a rolling shutter, the
     one geometry uses), landmark id (-1: none), first keyframe and the (unrolled) pixel there, and the
     shape of each track's position error (``cov``, (N, 2, 2):
-    :func:`~fmapping.tracking.features.corner_covariance` where it was detected; the identity when not given)."""
+    :func:`~fmapping.tracking.features.corner_covariance` where it was detected; the identity when not given).
+    :meth:`mark_keyframe` keeps the pixels at the current keyframe (``uv_kf``, which the front end re-tracks
+    from, and ``geo_kf``, unrolled, where a track restarts when its landmark is dropped; ``kf``: which keyframe,
+    -1 none)."""
 
     def __init__(self, uv: np.ndarray, kf: int, cov: Optional[np.ndarray] = None):
         n = len(uv)
+        self.kf = -1
+        self.uv_kf: Optional[np.ndarray] = None
+        self.geo_kf: Optional[np.ndarray] = None
         self.uv = np.asarray(uv, np.float64).reshape(-1, 2).copy()
         self.geo = self.uv
         self.lid = np.full(n, -1, np.int64)
@@ -36,6 +42,19 @@ class Tracks:
         self.uv, self.geo, self.lid, self.first_kf, self.uv_first, self.tid, self.cov = (
             self.uv[mask], self.geo[mask], self.lid[mask], self.first_kf[mask], self.uv_first[mask], self.tid[mask],
             self.cov[mask])
+        if self.uv_kf is not None:
+            self.uv_kf, self.geo_kf = self.uv_kf[mask], self.geo_kf[mask]
+
+    def mark_keyframe(self, index: int) -> None:
+        """The tracks' pixels now are their pixels in keyframe ``index``."""
+        self.kf = int(index)
+        self.uv_kf = self.uv.astype(np.float32)
+        self.geo_kf = np.array(self.geo, np.float64)
+
+    def restart_pixels(self, kf: int) -> np.ndarray:
+        """Each track's (unrolled) pixel in keyframe ``kf``: kept by :meth:`mark_keyframe` when that was ``kf``,
+        else the current one (a keyframe whose pixels are not marked yet is the current frame)."""
+        return self.geo_kf if self.geo_kf is not None and self.kf == kf else self.geo
 
     def add(self, uv: np.ndarray, kf: int, geo: Optional[np.ndarray] = None) -> None:
         """Tracks starting at keyframe ``kf`` (their error shape the identity: only the bootstrap's are shaped)."""
@@ -49,6 +68,9 @@ class Tracks:
         start = int(self.tid.max()) + 1 if len(self.tid) else 0
         self.tid = np.concatenate([self.tid, np.arange(start, start + n)])
         self.cov = np.concatenate([self.cov, _covariances(None, n)])
+        if self.uv_kf is not None:  # new corners are in the current frame: its pixels if it is the marked keyframe
+            self.uv_kf = np.concatenate([self.uv_kf, np.asarray(uv, np.float32)])
+            self.geo_kf = np.concatenate([self.geo_kf, geo])
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -306,10 +328,13 @@ class KeyframeStore:
             self.obs.drop(badset)
             bad_l = {b for _, b in badset}
             tr = self.tracks
+            # merged frames after the keyframe (MonoConfig.ba_thread): restart at the keyframe's pixel, not the
+            # current frame's, else the next triangulation pairs the keyframe's pose with another frame's pixel
+            restart = tr.restart_pixels(win[-1])
             for j in np.flatnonzero(np.isin(tr.lid, list(bad_l))):
                 tr.lid[j] = -1  # re-triangulate later from this keyframe on
                 tr.first_kf[j] = win[-1]
-                tr.uv_first[j] = tr.geo[j]
+                tr.uv_first[j] = restart[j]
         self.ba_stats.append({"keyframes": len(win), "fixed_observers": len(prob.extra), "points": int(len(prob.lids)),
                               "obs": int(len(obs)),
                               "rms_before_px": float(np.sqrt(2 * res.cost_before / max(1, len(obs)))),
