@@ -63,7 +63,7 @@ def test_slam_rgb_only_end_to_end(scene, tmp_path, monkeypatch):
     assert on_disk["init"]["frontend"] == "mono" and on_disk["init"]["scale_from"] == "anchor"
     # the scale was taken again at frame 14, before the mapper saw a frame (it holds the rescaled poses: below)
     assert on_disk["init"]["late_anchor"]["frame"] == 14 and "refused" not in on_disk["init"]["late_anchor"]
-    assert s["tracking_loss_events"] == 0
+    assert s["tracking_loss_events"] == 0 and s["warnings"] == []  # nothing to warn a user about
     # measured: 0.25 cm (Sim3) / 0.59 cm (unaligned, GT-anchored scale) on this 40-frame 320x240 clip
     # (0.43 / 1.16 cm with the 21 px KLT window of before)
     assert s["ate_sim3_rmse_m"] < 0.01, s
@@ -127,6 +127,8 @@ def test_slam_starts_the_bootstrap_again_after_blank_frames(scene, tmp_path):
     assert first >= 4 and s["frames_posed"] == len(ts) == 40 - first
     assert stats["init"]["frontend"] == "mono" and stats["init"]["scale_from"] == "anchor"
     assert any("restarted" in n for n in stats["notes"]), stats["notes"]
+    # the user is told, in the summary and the log, which share of the frames has no pose and why
+    assert any(w.startswith(f"{first} of 40 frames have no pose") for w in s["warnings"]), s["warnings"]
     np.testing.assert_allclose(est[0], gt[first], atol=1e-6)  # the bootstrap's first frame at its anchor
     assert s["ate_sim3_rmse_m"] < 0.01 and s["ate_none_rmse_m"] < 0.02, s
 

@@ -71,6 +71,31 @@ def _export(run: SlamRun, out: Path) -> dict:
                              center=run.c2w0[:3, 3], scale=run.scale)
 
 
+def tracking_warnings(summary: dict, max_unposed: float = 0.05, max_relocalised: float = 0.1) -> list[str]:
+    """Plain warnings for a user from a run's ``summary``, when its trajectory (and so its map) is not to be trusted:
+    more than ``max_unposed`` of the frames without a pose (the monocular bootstrap waited for enough texture and
+    translation), tracking lost, more than ``max_relocalised`` of the frames re-localised, or degraded at the end.
+    Nothing from ground truth: a user without it gets the same."""
+    n = max(int(summary.get("frames") or 0), 1)
+    stopped = summary.get("stopped_at")
+    seen = n if stopped is None else max(int(stopped), 1)
+    out = []
+    unposed = seen - int(summary.get("frames_posed") or 0)
+    if unposed > max_unposed * seen:
+        out.append(f"{unposed} of {seen} frames have no pose: the monocular start needs texture and camera "
+                   f"translation (not only rotation) in its first frames")
+    lost = int(summary.get("tracking_loss_events") or 0)
+    reloc = int(summary.get("relocalised_frames") or 0)
+    if lost:
+        out.append(f"tracking was lost {lost} time(s); {reloc} frame(s) were re-localised: the trajectory and the map "
+                   f"may be wrong there (weak texture, fast motion or blur)")
+    elif reloc > max_relocalised * seen:
+        out.append(f"{reloc} of {seen} frames were re-localised: tracking was fragile")
+    if summary.get("degraded_at_end"):
+        out.append("the run ended degraded: the map could not give depth to the tracker")
+    return out
+
+
 def run_slam(job: Job, should_stop: StopFn = None) -> dict:
     """Run the SLAM loop (see the module docstring); returns the stats dict with a ``summary``.
     ``should_stop()`` True ends it early: the frames so far are written, without the closing
@@ -150,6 +175,9 @@ def run_slam(job: Job, should_stop: StopFn = None) -> dict:
         "init_frames": getattr(run, "init_report", {}).get("frames"),
         "degraded_at_end": run.degraded,
     }
+    summary["warnings"] = tracking_warnings(summary)
+    for w in summary["warnings"]:
+        log.warning("%s", w)
     if ate_res:
         for a in ("se3", "sim3", "none"):
             if "rmse_m" in ate_res.get(a, {}):
