@@ -341,7 +341,9 @@ def test_overload_playback_faster_than_the_mapper_drops_frames_and_rss_stays_fla
     print("[overload] mapper RSS MB by second: " + ", ".join(f"{t:.0f}:{r / 1024:.0f}" for t, r, _, _ in samples))
     print(f"[overload] growth after {WARMUP_SECONDS:.0f} s warm-up {growth_mb:.1f} MB (bound {bound_mb:.1f} MB); "
           f"an unbounded queue would have held {offered_mb:.0f} MB more")
-    assert growth_mb < bound_mb < offered_mb, (growth_mb, bound_mb, offered_mb)
+    # and the bound tells: with an unbounded queue the growth would have been offered_mb more than it was (a fast
+    # machine maps more frames, which raises the bound and lowers offered_mb: 62.1 against 60.4 + 12.4 MB once)
+    assert growth_mb < bound_mb < growth_mb + offered_mb, (growth_mb, bound_mb, offered_mb)
 
 
 # ============================================================================ 3. crash and restart
