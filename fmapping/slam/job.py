@@ -82,8 +82,10 @@ def tracking_warnings(summary: dict, max_unposed: float = 0.05, max_relocalised:
     out = []
     unposed = seen - int(summary.get("frames_posed") or 0)
     if unposed > max_unposed * seen:
-        out.append(f"{unposed} of {seen} frames have no pose: the monocular start needs texture and camera "
-                   f"translation (not only rotation) in its first frames")
+        source = summary.get("poses", "photometric")
+        why = (": the monocular start needs texture and camera translation (not only rotation) in its first frames"
+               if source == "photometric" else f" from the pose source ({source})")
+        out.append(f"{unposed} of {seen} frames have no pose{why}")
     lost = int(summary.get("tracking_loss_events") or 0)
     reloc = int(summary.get("relocalised_frames") or 0)
     if lost:

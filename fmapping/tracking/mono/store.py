@@ -68,7 +68,7 @@ class Tracks:
         start = int(self.tid.max()) + 1 if len(self.tid) else 0
         self.tid = np.concatenate([self.tid, np.arange(start, start + n)])
         self.cov = np.concatenate([self.cov, _covariances(None, n)])
-        if self.uv_kf is not None:  # new corners are in the current frame: its pixels if it is the marked keyframe
+        if self.uv_kf is not None:  # the same length as the rest (a keyframe marks all of them next)
             self.uv_kf = np.concatenate([self.uv_kf, np.asarray(uv, np.float32)])
             self.geo_kf = np.concatenate([self.geo_kf, geo])
 
