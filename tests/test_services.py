@@ -1029,9 +1029,11 @@ def test_fmapping_demo_runs_the_system_and_reports_its_metrics(tmp_path):
     assert ate(tracked, gt, "none")["rmse_m"] < 0.02
     _, mapped = read_tum_trajectory(out / "traj.txt")
     assert len(mapped) == len(ds)  # every frame mapped, none waited in vain for its pose
-    status = json.loads((out / "up.json").read_text())["status"]
+    up = json.loads((out / "up.json").read_text())
+    status = up["status"]
     assert status["mapper"]["counters"].get("frames_without_pose", 0) == 0, status["mapper"]
     assert status["tracker"]["counters"].get("frames_lost", 0) == 0, status["tracker"]
+    assert up["warnings"] == [] and "fmapping up: warning" not in r.stderr  # a clean run: nothing to warn about
 
 
 def test_docker_compose_config_validates():

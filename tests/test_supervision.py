@@ -572,3 +572,30 @@ def test_play_sends_a_restarted_consumer_the_frames_it_missed_and_starts_after_a
     p.peers.update(P.Status(service="mapper", seq=3, frame_seq=8))  # a mapper resumed at frame 8
     assert p.run() == 0
     assert [f.seq for f in frames(session)] == [9, 10, 11, 12, 13] and p.svc.counters.get("started_after") == 8
+
+
+def test_up_warns_from_the_trackers_counters_when_its_trajectory_is_not_to_be_trusted(tmp_path, capsys):
+    """``fmapping up``'s summary (``up.json``) and its last lines turn the tracker's status into plain warnings:
+    frames lost, or more than a tenth of the frames re-localised; a clean tracker, or none, gives none."""
+    import json
+
+    from services.launcher.supervise import tracker_warnings, write_summary
+
+    assert tracker_warnings(None) == [] and tracker_warnings({"counters": {}}) == []
+    assert tracker_warnings({"counters": {"frames_received": 200, "relocalised": 20}}) == []
+    fragile = tracker_warnings({"counters": {"frames_received": 200, "relocalised": 21}})
+    assert fragile == ["21 of 200 frames were re-localised: tracking was fragile"]
+
+    class Stub:  # a finished service with its last status
+        def __init__(self, counters):
+            self.rc, self.restarts, self._s = 0, 0, {"state": "stopped", "counters": counters}
+
+        def status(self):
+            return self._s
+
+    procs = {"tracker": Stub({"frames_received": 200, "frames_lost": 3, "relocalised": 5}), "mapper": Stub({})}
+    summary = write_summary(procs, 0.0, tmp_path)
+    assert summary["warnings"] == [
+        "tracking was lost on 3 frame(s); 5 frame(s) were re-localised: the trajectory and the map may be wrong "
+        "there (weak texture, fast motion or blur)"]
+    assert json.loads((tmp_path / "up.json").read_text())["warnings"] == summary["warnings"]

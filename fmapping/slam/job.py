@@ -15,6 +15,7 @@ from fmapping.config import to_dict
 from fmapping.job import Job
 from fmapping.map_outputs import MESH_RESOLUTION, write_map_outputs
 from fmapping.pipeline import open_job_dataset, recon_stats, write_stats
+from fmapping.run_warnings import tracking_warnings
 from fmapping.slam.config import build_slam_config
 from fmapping.slam.run import SlamRun
 
@@ -69,33 +70,6 @@ def _export(run: SlamRun, out: Path) -> dict:
     return write_map_outputs(m, kf_poses, run.camera, out, near=cfg.near, far=cfg.far,
                              mesh_samples=(48, 16), mesh_resolution=MESH_RESOLUTION,
                              center=run.c2w0[:3, 3], scale=run.scale)
-
-
-def tracking_warnings(summary: dict, max_unposed: float = 0.05, max_relocalised: float = 0.1) -> list[str]:
-    """Plain warnings for a user from a run's ``summary``, when its trajectory (and so its map) is not to be trusted:
-    more than ``max_unposed`` of the frames without a pose (the monocular bootstrap waited for enough texture and
-    translation), tracking lost, more than ``max_relocalised`` of the frames re-localised, or degraded at the end.
-    Nothing from ground truth: a user without it gets the same."""
-    n = max(int(summary.get("frames") or 0), 1)
-    stopped = summary.get("stopped_at")
-    seen = n if stopped is None else max(int(stopped), 1)
-    out = []
-    unposed = seen - int(summary.get("frames_posed") or 0)
-    if unposed > max_unposed * seen:
-        source = summary.get("poses", "photometric")
-        why = (": the monocular start needs texture and camera translation (not only rotation) in its first frames"
-               if source == "photometric" else f" from the pose source ({source})")
-        out.append(f"{unposed} of {seen} frames have no pose{why}")
-    lost = int(summary.get("tracking_loss_events") or 0)
-    reloc = int(summary.get("relocalised_frames") or 0)
-    if lost:
-        out.append(f"tracking was lost {lost} time(s); {reloc} frame(s) were re-localised: the trajectory and the map "
-                   f"may be wrong there (weak texture, fast motion or blur)")
-    elif reloc > max_relocalised * seen:
-        out.append(f"{reloc} of {seen} frames were re-localised: tracking was fragile")
-    if summary.get("degraded_at_end"):
-        out.append("the run ended degraded: the map could not give depth to the tracker")
-    return out
 
 
 def run_slam(job: Job, should_stop: StopFn = None) -> dict:
@@ -177,7 +151,9 @@ def run_slam(job: Job, should_stop: StopFn = None) -> dict:
         "init_frames": getattr(run, "init_report", {}).get("frames"),
         "degraded_at_end": run.degraded,
     }
-    summary["warnings"] = tracking_warnings(summary)
+    summary["warnings"] = tracking_warnings(run.stopped_at if run.stopped_at is not None else len(ds), len(idx),
+                                            len(run.loss_events), summary["relocalised_frames"], run.degraded,
+                                            poses_mode)
     for w in summary["warnings"]:
         log.warning("%s", w)
     if ate_res:

@@ -12,6 +12,8 @@ import time
 from pathlib import Path
 from typing import Optional
 
+from fmapping.run_warnings import tracking_warnings
+
 # A service's status file is rewritten by its heartbeat thread every 0.5 s, even during a long update:
 # one unchanged for this long belongs to a hung process, and the run is stopped with its name.
 HEARTBEAT_TIMEOUT = 120.0
@@ -203,6 +205,8 @@ def monitor(procs: dict[str, Proc], t0: float, timeout: Optional[float], out: Pa
     summary = write_summary(procs, t0, out)
     print("fmapping up: done in %.1f s; outputs: %s" % (summary["seconds"], ", ".join(summary["outputs"].values())),
           flush=True)
+    for w in summary["warnings"]:
+        print(f"fmapping up: warning: {w}", file=sys.stderr, flush=True)
     missing = [n for n in ("map.ply", "traj.txt") if n not in summary["outputs"]]
     if missing:
         print(f"fmapping up: missing outputs {missing} (see {out / 'logs'})", file=sys.stderr, flush=True)
@@ -230,6 +234,16 @@ def _supervise(procs: dict[str, Proc], pending: dict[str, float], now: float) ->
             procs[name].restart()
 
 
+def tracker_warnings(status: Optional[dict]) -> list[str]:
+    """The tracker's last status as warnings for the user (:func:`fmapping.run_warnings.tracking_warnings`):
+    frames lost or many re-localised. None or no frame received: none."""
+    c = (status or {}).get("counters") or {}
+    n = int(c.get("frames_received", 0) or 0)
+    if n == 0:
+        return []
+    return tracking_warnings(n, lost=int(c.get("frames_lost", 0) or 0), relocalised=int(c.get("relocalised", 0) or 0))
+
+
 def write_summary(procs: dict[str, Proc], t0: float, out: Path, error: str = "") -> dict:
     """OUT/up.json: seconds, the outputs present, every service's last status, and ``error`` (why
     the run failed) when there is one."""
@@ -244,6 +258,7 @@ def write_summary(procs: dict[str, Proc], t0: float, out: Path, error: str = "")
                              "counters": p.status().get("counters", {}), "rc": p.rc,
                              "last_error": p.status().get("last_error", "")} for n, p in procs.items()}
     summary["restarts"] = {n: p.restarts for n, p in procs.items() if p.restarts}
+    summary["warnings"] = tracker_warnings(summary["status"].get("tracker"))
     (out / "up.json").write_text(json.dumps(summary, indent=1, default=str))
     return summary
 
