@@ -12,7 +12,9 @@ def tracking_warnings(frames: int, posed: Optional[int] = None, lost: int = 0, r
     """Warnings for a run over ``frames`` frames: more than ``max_unposed`` of them without a pose (``posed``, when
     known; ``source`` names where poses come from, "photometric" for the monocular front end), tracking ``lost``
     on some frames, more than ``max_relocalised`` of them ``relocalised``, or ``degraded`` at the end."""
-    n = max(int(frames), 1)
+    if int(frames) <= 0:
+        return []  # stopped before its first frame: nothing ran to be trusted or not
+    n = int(frames)
     out = []
     if posed is not None and n - int(posed) > max_unposed * n:
         why = (": the monocular start needs texture and camera translation (not only rotation) in its first frames"

@@ -245,8 +245,8 @@ def tracker_warnings(status: Optional[dict]) -> list[str]:
 
 
 def write_summary(procs: dict[str, Proc], t0: float, out: Path, error: str = "") -> dict:
-    """OUT/up.json: seconds, the outputs present, every service's last status, and ``error`` (why
-    the run failed) when there is one."""
+    """OUT/up.json: seconds, the outputs present, every service's last status, the tracker's warnings
+    (:func:`tracker_warnings`), and ``error`` (why the run failed) when there is one."""
     summary: dict = {"seconds": round(time.monotonic() - t0, 1), "outputs": {}}
     if error:
         summary["error"] = error
