@@ -285,6 +285,12 @@ def rotation_angle_np(r: np.ndarray) -> float:
     return float(math.atan2(float(np.linalg.norm(w)), (float(np.trace(r)) - 1.0) / 2.0))
 
 
+def line_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle (degrees, 0-90) between the lines of vectors ``a`` and ``b`` (3,): their signs aside."""
+    c = abs(float(np.dot(a, b))) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-12)
+    return math.degrees(math.acos(min(c, 1.0)))
+
+
 def pose_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """(translation metres, rotation degrees) of ``inv(a) @ b``."""
     d = inv_pose(a) @ b

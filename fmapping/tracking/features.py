@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 
 from fmapping.camera import PinholeCamera
+from fmapping.geometry import line_angle_deg
 
 
 @dataclass
@@ -444,7 +445,7 @@ def refine_two_view_whitened(camera: PinholeCamera, rot_ab: np.ndarray, t_ab: np
         return least_squares(residuals, x, loss="huber", f_scale=inlier_px, max_nfev=nfev, args=(m,))
 
     def distinct(a, b) -> bool:
-        return abs(float(pose(a.x)[1] @ pose(b.x)[1])) < math.cos(math.radians(distinct_deg))
+        return line_angle_deg(pose(a.x)[1], pose(b.x)[1]) > distinct_deg
 
     every = np.ones(len(uv_a), bool)
     found = [fit(np.r_[np.zeros(3), t0], every, 200)]

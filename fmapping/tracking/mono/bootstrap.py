@@ -6,19 +6,13 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from fmapping.geometry import inv_pose, orthonormalize, pose_distance
+from fmapping.geometry import inv_pose, line_angle_deg, orthonormalize, pose_distance
 from fmapping.tracking.ba import bundle_adjust
 from fmapping.tracking.features import (
     at_width, corner_covariance, detect_corners, to_u8, triangulate, two_view_init, two_view_known_baseline,
 )
 from fmapping.tracking.mono.store import Tracks
 from fmapping.tracking.rolling_shutter import rotation_step, unroll
-
-
-def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    """Angle (degrees) between the lines of vectors ``a`` and ``b`` (their signs aside)."""
-    c = abs(float(a @ b)) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-12)
-    return float(np.degrees(np.arccos(min(c, 1.0))))
 
 
 def _parallax_deg(c2w_a: np.ndarray, c2w_b: np.ndarray, world: np.ndarray) -> np.ndarray:
@@ -110,7 +104,7 @@ class Bootstrap:
                                    starts=c.init_two_view_starts)
                 if (tw is not None and tw.valid.sum() >= c.init_min_points
                         and tw.median_parallax_deg >= c.init_min_parallax_deg
-                        and _angle_deg(tw.c2w_b[:3, 3], tv.c2w_b[:3, 3]) > c.init_whitened_min_change_deg):
+                        and line_angle_deg(tw.c2w_b[:3, 3], tv.c2w_b[:3, 3]) > c.init_whitened_min_change_deg):
                     tv = tw
             base = anchor_baseline(index) if anchor_baseline is not None else None
             if base is not None and base > 1e-4:
