@@ -602,12 +602,13 @@ def test_inverse_of_symmetric_3x3_blocks_matches_numpy_and_refuses_singular_ones
         inv_sym3(h)
 
 
-@pytest.mark.parametrize("path", ["dense", "pairs", "pairs-chunked", "repeated"])
+@pytest.mark.parametrize("path", ["dense", "pairs", "pairs-chunked", "repeated", "unobserved-pose", "all-fixed"])
 def test_schur_step_matches_dense_normal_equations(path, monkeypatch):
     """The BA's Schur-complement step against the full (poses + points) damped normal equations
     built from a dense Jacobian and solved directly; by both ways of forming ``Hpx Hxx^-1 Hxp``
     (one dense product; pairs of observations of a point, which large problems take, also summed a
-    few pairs at a time), and with observations repeated."""
+    few pairs at a time), with observations repeated, with a free pose that sees no point (its
+    block is the damping alone) and with every pose fixed (the points alone)."""
     import fmapping.tracking.ba as ba
     from fmapping.tracking.ba import damped_step, normal_equations, reprojection_jacobians
 
@@ -619,10 +620,12 @@ def test_schur_step_matches_dense_normal_equations(path, monkeypatch):
     cam = PinholeCamera(250.0, 240.0, 160.0, 120.0, 320, 240)
     rng = np.random.default_rng(11)
     n_pose, n_pt = 5, 40
-    fixed = {0, 2}
+    fixed = set(range(n_pose)) if path == "all-fixed" else {0, 2}
     t = np.stack([se3_exp_np(rng.normal(size=6) * 0.1) for _ in range(n_pose)])
     x = rng.normal(size=(n_pt, 3)) + [0.0, 0.0, 4.0]
     pairs = {(int(k), p) for p in range(n_pt) for k in rng.choice(n_pose, rng.integers(2, 5), replace=False)}
+    if path == "unobserved-pose":
+        pairs = {(k, p) for k, p in pairs if k != 3}
     kf, pt = np.array(sorted(pairs)).T
     if path == "repeated":
         kf, pt = np.concatenate([kf, kf[::7]]), np.concatenate([pt, pt[::7]])

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -82,9 +82,18 @@ def _robust_cost(r2: np.ndarray, k: float) -> float:
 def block_sum(index: np.ndarray, blocks: np.ndarray, n: int) -> np.ndarray:
     """``out[i] = sum of blocks[o] with index[o] == i`` for blocks (O, ...) -> (n, ...)."""
     shape = blocks.shape[1:]
-    k = int(np.prod(shape))
-    flat = (np.asarray(index, np.int64)[:, None] * k + np.arange(k)).ravel()
-    return np.bincount(flat, weights=blocks.reshape(len(index), k).ravel(), minlength=n * k).reshape((n,) + shape)
+    return _summed(_flat_index(index, int(np.prod(shape))), blocks, n)
+
+
+def _flat_index(index: np.ndarray, k: int) -> np.ndarray:
+    """Where each entry of per-observation blocks of ``k`` entries goes in ``n`` such blocks laid out flat."""
+    return (np.asarray(index, np.int64)[:, None] * k + np.arange(k)).ravel()
+
+
+def _summed(flat: np.ndarray, blocks: np.ndarray, n: int) -> np.ndarray:
+    """:func:`block_sum` with the flat positions :func:`_flat_index` made in advance."""
+    shape = blocks.shape[1:]
+    return np.bincount(flat, weights=blocks.reshape(-1), minlength=n * int(np.prod(shape))).reshape((n,) + shape)
 
 
 def same_point_pairs(point_of: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -100,32 +109,83 @@ def same_point_pairs(point_of: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return order[a], order[b]
 
 
+class ObservationLayout:
+    """Where a BA problem's observations go in its normal equations: the index arrays every
+    Levenberg-Marquardt iteration of one problem shares (which observations have a free pose,
+    the flat positions their blocks are summed into, the pairs of observations of one point).
+    Made once per problem; each is built when first asked for."""
+
+    def __init__(self, pose_col: np.ndarray, point: np.ndarray, n_free: int, n_points: int):
+        self.pose_col = np.asarray(pose_col, np.int64)
+        self.point = np.asarray(point, np.int64)
+        self.n_free, self.n_points = int(n_free), int(n_points)
+        self.free_obs = np.flatnonzero(self.pose_col >= 0)
+        self.pose_of = self.pose_col[self.free_obs]  # of the observations of a free pose
+        self.point_of = self.point[self.free_obs]
+        self._flat: dict = {}
+
+    @cached_property
+    def all_free(self) -> bool:
+        return len(self.free_obs) == len(self.pose_col)
+
+    @cached_property
+    def by_pose(self) -> list[np.ndarray]:
+        """The observations of each free pose."""
+        if self.n_free == 0:
+            return []
+        order = np.argsort(self.pose_of, kind="stable")
+        cuts = np.searchsorted(self.pose_of[order], np.arange(1, self.n_free))
+        return np.split(self.free_obs[order], cuts)
+
+    def flat(self, which: str, k: int) -> np.ndarray:
+        """The flat positions (:func:`_flat_index`) of ``k``-entry blocks of every observation by its point
+        (``which`` "point"), or of the free-pose observations by their pose ("pose") or their point
+        ("point_of")."""
+        if (which, k) not in self._flat:
+            index = {"point": self.point, "pose": self.pose_of, "point_of": self.point_of}[which]
+            self._flat[which, k] = _flat_index(index, k)
+        return self._flat[which, k]
+
+    @cached_property
+    def at(self) -> np.ndarray:
+        """Each free-pose observation's (6, 3) ``hpx`` block's entries in the dense (6P, 3M) matrix, flat."""
+        rows = 6 * self.pose_of[:, None, None] + np.arange(6)[None, :, None]
+        cols = 3 * self.point_of[:, None, None] + np.arange(3)[None, None, :]
+        return (rows * (3 * self.n_points) + cols).ravel()
+
+    @cached_property
+    def pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`same_point_pairs` of the free-pose observations."""
+        return same_point_pairs(self.point_of)
+
+
 @dataclass
 class NormalEquations:
     """Gauss-Newton normal equations of a BA problem in block form: free poses (6 each), points (3 each).
 
     ``hpp`` (P, 6, 6) and ``hxx`` (M, 3, 3) are the block diagonals (an observation involves
     one pose and one point), ``gp`` (P, 6) / ``gx`` (M, 3) the gradients, and the pose-point
-    coupling has one 6x3 block ``hpx`` per observation of a free pose (``pose_of``, ``point_of``)."""
+    coupling has one 6x3 block ``hpx`` per observation of a free pose (``layout.pose_of``,
+    ``layout.point_of``)."""
     hpp: np.ndarray
     gp: np.ndarray
     hxx: np.ndarray
     gx: np.ndarray
     hpx: np.ndarray
-    pose_of: np.ndarray
-    point_of: np.ndarray
+    layout: ObservationLayout
 
-    @cached_property
-    def at(self) -> np.ndarray:
-        """Each ``hpx`` block's entries in the dense (6P, 3M) matrix, flat (for :func:`_scatter`)."""
-        rows = 6 * self.pose_of[:, None, None] + np.arange(6)[None, :, None]
-        cols = 3 * self.point_of[:, None, None] + np.arange(3)[None, None, :]
-        return (rows * (3 * len(self.hxx)) + cols).ravel()
+    @property
+    def pose_of(self) -> np.ndarray:
+        return self.layout.pose_of
+
+    @property
+    def point_of(self) -> np.ndarray:
+        return self.layout.point_of
 
     @cached_property
     def hpx_dense(self) -> np.ndarray:
         """``hpx`` as the dense (6P, 3M) matrix (built once per normal equations, for every damping tried)."""
-        return _scatter(self.at, self.hpx, len(self.hpp), len(self.hxx))
+        return _scatter(self.layout.at, self.hpx, len(self.hpp), len(self.hxx))
 
 
 def _scatter(at: np.ndarray, blocks: np.ndarray, n_free: int, n_points: int) -> np.ndarray:
@@ -139,18 +199,30 @@ def _t(a: np.ndarray) -> np.ndarray:
 
 
 def normal_equations(jp: np.ndarray, jx: np.ndarray, r: np.ndarray, w: np.ndarray, pose_col: np.ndarray,
-                     point: np.ndarray, n_free: int, n_points: int) -> NormalEquations:
+                     point: np.ndarray, n_free: int, n_points: int,
+                     layout: Optional[ObservationLayout] = None) -> NormalEquations:
     """Weighted normal equations from per-observation Jacobians ``jp`` (O, 2, 6), ``jx`` (O, 2, 3),
     residuals ``r`` (O, 2), weights ``w`` (O,); ``pose_col`` is the free-pose column of each
-    observation (-1: a fixed pose, which contributes to the points only)."""
-    jxw_t = _t(jx * w[:, None, None])  # (O, 3, 2)
-    hxx = block_sum(point, jxw_t @ jx, n_points)
-    gx = block_sum(point, (jxw_t @ r[:, :, None])[..., 0], n_points)
-    fo = pose_col >= 0
-    jpw_t = _t(jp[fo] * w[fo, None, None])  # (F, 6, 2)
-    hpp = block_sum(pose_col[fo], jpw_t @ jp[fo], n_free)
-    gp = block_sum(pose_col[fo], (jpw_t @ r[fo, :, None])[..., 0], n_free)
-    return NormalEquations(hpp, gp, hxx, gx, jpw_t @ jx[fo], pose_col[fo], point[fo])
+    observation (-1: a fixed pose, which contributes to the points only). ``layout``: the problem's
+    :class:`ObservationLayout` of these indices, when the caller keeps one across iterations.
+
+    The point blocks and the pose-point coupling of each observation come from one (9, 2) x (2, 3)
+    product of its stacked Jacobian ``[jp | jx]`` with ``jx``, each pose's block from one product of
+    its observations' stacked Jacobians (about half the time of per-observation products summed)."""
+    if layout is None:
+        layout = ObservationLayout(pose_col, point, n_free, n_points)
+    jw_t = _t(np.concatenate([jp, jx], axis=2) * w[:, None, None])  # (O, 9, 2): [jp | jx]^T W
+    hx = jw_t @ jx  # (O, 9, 3): jp^T W jx over jx^T W jx
+    g = (jw_t @ r[:, :, None])[..., 0]  # (O, 9)
+    hxx = _summed(layout.flat("point", 9), hx[:, 6:], n_points)
+    gx = _summed(layout.flat("point", 3), g[:, 6:], n_points)
+    hpp, gp = np.empty((n_free, 6, 6)), np.empty((n_free, 6))
+    for p, idx in enumerate(layout.by_pose):
+        a = jp[idx].reshape(-1, 6)
+        aw_t = (a * np.repeat(w[idx], 2)[:, None]).T
+        hpp[p] = aw_t @ a
+        gp[p] = aw_t @ r[idx].reshape(-1)
+    return NormalEquations(hpp, gp, hxx, gx, hx[:, :6] if layout.all_free else hx[layout.free_obs, :6], layout)
 
 
 DENSE_SCHUR_MAX = 50_000  # free poses x points up to which Hpx Hxx^-1 Hxp is one dense product
@@ -165,8 +237,8 @@ def _hpx_hinv_hxp(ne: NormalEquations, u: np.ndarray) -> np.ndarray:
     point into its pose pair (:func:`same_point_pairs`)."""
     nf, m = len(ne.hpp), len(ne.hxx)
     if nf * m <= DENSE_SCHUR_MAX:
-        return _scatter(ne.at, u, nf, m) @ ne.hpx_dense.T
-    a, b = same_point_pairs(ne.point_of)
+        return _scatter(ne.layout.at, u, nf, m) @ ne.hpx_dense.T
+    a, b = ne.layout.pairs
     blocks = np.zeros((nf * nf, 6, 6))
     for s in range(0, len(a), PAIRS_CHUNK):  # in chunks: the temporaries of all pairs at once took ~60 MB
         aa, bb = a[s:s + PAIRS_CHUNK], b[s:s + PAIRS_CHUNK]
@@ -202,9 +274,10 @@ def damped_step(ne: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray
     hpp_d = ne.hpp + lam * np.eye(6) * (np.einsum("pii->pi", ne.hpp)[:, :, None] + 1e-9)
     for p in range(nf):
         schur[6 * p:6 * p + 6, 6 * p:6 * p + 6] += hpp_d[p]
-    rhs = -ne.gp + block_sum(ne.pose_of, (u @ ne.gx[ne.point_of][:, :, None])[..., 0], nf)
+    lay = ne.layout
+    rhs = -ne.gp + _summed(lay.flat("pose", 6), (u @ ne.gx[ne.point_of][:, :, None])[..., 0], nf)
     dp = np.linalg.solve(schur, rhs.reshape(-1)).reshape(nf, 6)
-    back = block_sum(ne.point_of, (_t(ne.hpx) @ dp[ne.pose_of][:, :, None])[..., 0], m)
+    back = _summed(lay.flat("point_of", 3), (_t(ne.hpx) @ dp[ne.pose_of][:, :, None])[..., 0], m)
     dx = -(hinv @ (ne.gx + back)[:, :, None])[..., 0]
     return dp, dx
 
@@ -230,6 +303,7 @@ def bundle_adjust(camera: PinholeCamera, poses_c2w: Sequence[np.ndarray], fixed:
     col = np.full(k, -1, np.int64)
     col[free] = np.arange(len(free))
     oc = col[obs_kf]  # free-pose column of each observation (-1: fixed)
+    layout = ObservationLayout(oc, obs_pt, len(free), len(x))
 
     def residuals(t_, x_):
         uv, _, _ = _project(camera, t_[obs_kf], x_[obs_pt])
@@ -242,7 +316,7 @@ def bundle_adjust(camera: PinholeCamera, poses_c2w: Sequence[np.ndarray], fixed:
     nfev = 1
     while nfev < max_nfev:
         jp, jx = reprojection_jacobians(camera, t[obs_kf], x[obs_pt])
-        ne = normal_equations(jp, jx, r, _huber_w(r2, huber_px), oc, obs_pt, len(free), len(x))
+        ne = normal_equations(jp, jx, r, _huber_w(r2, huber_px), oc, obs_pt, len(free), len(x), layout)
         improved = False
         while nfev < max_nfev:
             try:
