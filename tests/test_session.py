@@ -116,6 +116,41 @@ def test_the_tracker_service_publishes_exactly_the_session_updates(room):
         np.testing.assert_allclose(m.c2w, u.c2w, atol=1e-9)  # the wire keeps float64 rotations orthonormal
         assert m.quality == pytest.approx(u.quality) and m.timestamp == pytest.approx(u.timestamp)
     assert core.counters.get("republished") == sum(u.kind == "refined" for u in ups) > 0
+    first = {}
+    for m in msgs:
+        first.setdefault(m.seq, m.quality)
+    assert core.counters.get("frames_posed") == sum(q > 0 for q in first.values()) >= len(room) - 2
+
+
+def test_the_tracker_service_counts_the_frames_it_answered_without_a_pose(room):
+    """``frames_posed``: the frames whose (first) answer carries a pose. A camera that starts on blank frames
+    (no texture: the monocular start cannot begin) has no pose for them, and ``fmapping up``'s warnings say
+    how many (``services.launcher.supervise.tracker_warnings``); the clean run above has none."""
+    import dataclasses
+
+    from services.launcher.supervise import tracker_warnings
+    from services.tracker.core import TrackerCore
+
+    blank = 10
+    core = TrackerCore()
+    first = {}
+    for i in range(len(room)):
+        f = room[i]
+        if i < blank:
+            f = dataclasses.replace(f, rgb=np.full_like(f.rgb, 128))
+        core.handle("poses", P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
+        for _, m in core.handle("frames", P.encode(P.frame_from_dataset(f, seq=i))):
+            first.setdefault(m.seq, m.quality)
+    for _, m in core.handle("control", P.encode(P.Control(command="stop"))):
+        first.setdefault(m.seq, m.quality)
+    c = core.counters.snapshot()
+    posed = sum(q > 0 for q in first.values())
+    assert len(first) == c["frames_received"] == len(room)
+    assert c["frames_posed"] == posed and blank <= len(room) - posed < len(room)
+    assert all(first[i] == 0 for i in range(blank))
+    assert tracker_warnings({"counters": c})[0] == (
+        f"{len(room) - posed} of {len(room)} frames have no pose: the monocular start needs texture and camera "
+        f"translation (not only rotation) in its first frames")
 
 
 class _RecordingMapper:

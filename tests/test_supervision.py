@@ -576,7 +576,8 @@ def test_play_sends_a_restarted_consumer_the_frames_it_missed_and_starts_after_a
 
 def test_up_warns_from_the_trackers_counters_when_its_trajectory_is_not_to_be_trusted(tmp_path, capsys):
     """``fmapping up``'s summary (``up.json``) and its last lines turn the tracker's status into plain warnings:
-    frames lost, or more than a tenth of the frames re-localised; a clean tracker, or none, gives none."""
+    more than 5 % of the frames answered without a pose, frames lost, or more than a tenth of the frames
+    re-localised; a clean tracker, or none, gives none."""
     import json
 
     from services.launcher.supervise import tracker_warnings, write_summary
@@ -585,6 +586,12 @@ def test_up_warns_from_the_trackers_counters_when_its_trajectory_is_not_to_be_tr
     assert tracker_warnings({"counters": {"frames_received": 200, "relocalised": 20}}) == []
     fragile = tracker_warnings({"counters": {"frames_received": 200, "relocalised": 21}})
     assert fragile == ["21 of 200 frames were re-localised: tracking was fragile"]
+    assert tracker_warnings({"counters": {"frames_received": 200, "frames_posed": 190}}) == []  # 5 %: no warning
+    assert tracker_warnings({"counters": {"frames_received": 200, "frames_posed": 189}}) == [
+        "11 of 200 frames have no pose: the monocular start needs texture and camera translation (not only rotation) "
+        "in its first frames"]
+    assert tracker_warnings({"counters": {"frames_received": 200, "frames_posed": 150, "frontend_mono": 0}}) == [
+        "50 of 200 frames have no pose from the pose source (the tracker's map front end, once the mapper has a map)"]
 
     class Stub:  # a finished service with its last status
         def __init__(self, counters):

@@ -236,12 +236,16 @@ def _supervise(procs: dict[str, Proc], pending: dict[str, float], now: float) ->
 
 def tracker_warnings(status: Optional[dict]) -> list[str]:
     """The tracker's last status as warnings for the user (:func:`fmapping.run_warnings.tracking_warnings`):
-    frames lost or many re-localised. None or no frame received: none."""
+    frames it answered without a pose (``frames_posed`` of ``frames_received``), frames lost or many
+    re-localised. None or no frame received: none."""
     c = (status or {}).get("counters") or {}
     n = int(c.get("frames_received", 0) or 0)
     if n == 0:
         return []
-    return tracking_warnings(n, lost=int(c.get("frames_lost", 0) or 0), relocalised=int(c.get("relocalised", 0) or 0))
+    posed = c.get("frames_posed")
+    source = "photometric" if c.get("frontend_mono", 1) else "the tracker's map front end, once the mapper has a map"
+    return tracking_warnings(n, posed=None if posed is None else int(posed), lost=int(c.get("frames_lost", 0) or 0),
+                             relocalised=int(c.get("relocalised", 0) or 0), source=source)
 
 
 def write_summary(procs: dict[str, Proc], t0: float, out: Path, error: str = "") -> dict:

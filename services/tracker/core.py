@@ -168,6 +168,8 @@ class TrackerCore(MapFrontend, ServiceCore):
         self._writer: Optional[StateWriter] = StateWriter(self.opts.state_path) if self.opts.state_path else None
         if self.resume_state is not None:
             self.counters.set("resume_keyframe", int(self.resume_state[-1]["index"]))
+        # which front end answers (for the launcher's warnings: a status carries numbers only)
+        self.counters.set("frontend_mono", int(self.opts.frontend == "mono"))
 
     @property
     def ack(self) -> int:
@@ -482,6 +484,8 @@ class TrackerCore(MapFrontend, ServiceCore):
             for s in range(self.last_seq + 1, seq):
                 out.append(self._skip(s))
         self.last_seq = max(self.last_seq, seq)
+        if quality is None or quality > 0:
+            self.counters.inc("frames_posed")  # each frame is answered here once (again: _answer_again)
         out.append(("poses", P.Pose(seq=seq, timestamp=stamp, c2w=orthonormalize(c2w), source="tracker",
                                     quality=quality, keyframe=bool(keyframe))))
         return out
