@@ -245,6 +245,45 @@ def test_mono_late_anchor_takes_the_scale_again_at_the_end_of_the_init_window(ro
     assert max(np.abs(a[k] - b[k]).max() for k in a) < 1e-9
 
 
+def test_landmarks_move_and_scale_with_the_keyframe_that_first_saw_them():
+    """``KeyframeStore.move_landmarks`` (a loop's correction) and ``scale_part`` (a rescale of some keyframes)
+    against the per-landmark forms: a landmark goes with the keyframe of its first remaining observation
+    (an observation dropped moves it to its next keyframe), others stay bit for bit."""
+    from fmapping.camera import PinholeCamera
+    from fmapping.geometry import se3_exp_np
+    from fmapping.tracking.mono import MonoConfig
+    from fmapping.tracking.mono.store import KeyframeStore
+
+    rng = np.random.default_rng(4)
+    store = KeyframeStore(PinholeCamera(250.0, 250.0, 160.0, 120.0, 320, 240), MonoConfig())
+    store.lm = [rng.normal(size=3) for _ in range(60)]
+    for kf in (0, 5, 10, 15):
+        store.kf_pose[kf] = se3_exp_np(rng.normal(0, 0.2, 6))
+        lids = np.flatnonzero(rng.random(60) < 0.4)
+        store.obs.extend(kf, lids, rng.uniform(0, 300, (len(lids), 2)))
+    store.obs.drop([(0, int(i)) for i in store.obs.of_keyframe(0)[0][:5]])
+    first = store.first_keyframes()
+    assert set(first.values()) == {0, 5, 10, 15}
+    before = [p.copy() for p in store.lm]
+    corr = {5: se3_exp_np(rng.normal(0, 0.1, 6)), 15: se3_exp_np(rng.normal(0, 0.1, 6))}
+    store.move_landmarks(corr)
+    for i, p in enumerate(store.lm):
+        k = first.get(i)
+        want = corr[k][:3, :3] @ before[i] + corr[k][:3, 3] if k in corr else before[i]
+        np.testing.assert_allclose(p, want, rtol=0, atol=1e-12)
+        if k not in corr:
+            assert np.array_equal(p, before[i])
+    before = [p.copy() for p in store.lm]
+    c0 = np.array([0.3, -0.2, 1.0])
+    store.scale_part(c0, 1.7, {0, 10})
+    for i, p in enumerate(store.lm):
+        want = c0 + 1.7 * (before[i] - c0) if first.get(i) in (0, 10) else before[i]
+        assert np.array_equal(p, want)
+    before = np.stack(store.lm)
+    store.scale_part(c0, 0.5)  # everything, the landmarks no keyframe sees any more too
+    assert np.array_equal(np.stack(store.lm), c0 + 0.5 * (before - c0))
+
+
 def test_observations_table_matches_a_list_of_tuples():
     """The store's observation table against the plain list of ``(keyframe, landmark, u, v)`` tuples it
     replaced, under random appends, drops and in-place pixel edits: rows, per-keyframe lookups and each

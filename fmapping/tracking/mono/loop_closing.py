@@ -96,9 +96,7 @@ class LoopClosing:
         for k, b, a in zip(kfs, before, after):
             self.store.kf_pose[k] = orthonormalize(a)
             corr[k] = self.store.kf_pose[k] @ inv_pose(b)
-        for lid, k in self.store.first_keyframes().items():
-            if k in corr:
-                self.store.lm[lid] = corr[k][:3, :3] @ self.store.lm[lid] + corr[k][:3, 3]
+        self.store.move_landmarks(corr)
         out.update(keyframes=len(kfs), cost_before=stats["cost_before"], cost_after=stats["cost_after"])
         out["ba"] = lc.loop_ba and len(kfs) <= lc.loop_ba_max_keyframes
         if out["ba"]:

@@ -161,8 +161,12 @@ class Observations:
 
     def first_keyframes(self) -> dict:
         """{landmark id: the keyframe of its first remaining row}."""
+        return dict(zip(*(a.tolist() for a in self.first_keyframe_arrays())))
+
+    def first_keyframe_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`first_keyframes` as two arrays: landmark ids (ascending) and their keyframes."""
         lids, first = np.unique(self.lid, return_index=True)
-        return dict(zip(lids.tolist(), self.kf[first].tolist()))
+        return lids, self.kf[first]
 
 
 def _pair_keys(kf: np.ndarray, lid: np.ndarray) -> np.ndarray:
@@ -241,6 +245,17 @@ class KeyframeStore:
         """{landmark id: the keyframe of its first remaining observation}: whose pose it moves with."""
         return self.obs.first_keyframes()
 
+    def move_landmarks(self, corr: dict) -> None:
+        """Move each landmark with the keyframe it moves with (:meth:`first_keyframes`): ``corr`` is
+        {keyframe: 4x4 correction, new pose @ inv(old pose)}; landmarks of other keyframes stay."""
+        lids, first = self.obs.first_keyframe_arrays()
+        for k, c in corr.items():
+            sel = lids[first == k]
+            if len(sel):
+                moved = np.stack([self.lm[i] for i in sel]) @ c[:3, :3].T + c[:3, 3]
+                for i, q in zip(sel.tolist(), moved):
+                    self.lm[i] = q
+
     def spread_about(self, kfs: list, about: int) -> float:
         """Mean distance of the centres of keyframes ``kfs`` from keyframe ``about``'s."""
         c0 = self.kf_pose[about][:3, 3]
@@ -250,13 +265,18 @@ class KeyframeStore:
         """Scale by ``s`` about ``c0`` what belongs to keyframes ``kfs`` (default: everything): their
         poses, the landmarks first seen by them, the frames stored relative to them (translations)
         (the tracker's references are the front end's: :meth:`MonoFrontend._scale_part`)."""
-        first = None if kfs is None else self.first_keyframes()
         for k in list(self.kf_pose):
             if kfs is None or k in kfs:
                 self.kf_pose[k] = scale_about(self.kf_pose[k], c0, s)
-        for lid, p in enumerate(self.lm):
-            if kfs is None or first.get(lid) in kfs:
-                self.lm[lid] = c0 + s * (np.asarray(p) - c0)
+        if kfs is None:
+            sel = np.arange(len(self.lm))
+        else:
+            lids, first = self.obs.first_keyframe_arrays()
+            sel = lids[np.isin(first, np.fromiter(kfs, np.int64, len(kfs)))]
+        if len(sel):
+            moved = c0 + s * (np.stack([self.lm[i] for i in sel]) - c0)
+            for i, q in zip(sel.tolist(), moved):
+                self.lm[i] = q
         for i, (k, rel) in self.rel.items():
             if kfs is None or k in kfs:
                 rel = rel.copy()
