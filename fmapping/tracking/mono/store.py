@@ -323,11 +323,13 @@ class KeyframeStore:
         lids, inv = np.unique(obs[:, 1].astype(np.int64), return_inverse=True)
         if len(lids) < 10:
             return None
-        kf_pos = {k: i for i, k in enumerate(win + extra)}
+        order = np.array(win + extra, np.int64)  # each observation's keyframe -> its place in the problem
+        srt = np.argsort(order)
+        pose_of = srt[np.searchsorted(order[srt], obs[:, 0].astype(np.int64))]
         fixed = list(range(len(win))) if fixed_all_but_points else list(range(min(2, len(win))))
         fixed += list(range(len(win), len(win) + len(extra)))
         return BAProblem(win, extra, [self.kf_pose[k].copy() for k in win + extra], fixed, lids,
-                         np.stack([self.lm[i] for i in lids]), np.array([kf_pos[int(k)] for k in obs[:, 0]]),
+                         np.stack([self.lm[i] for i in lids]), pose_of,
                          inv, obs, c.ba_huber_px, c.ba_max_nfev if max_nfev is None else max_nfev, c.ba_rel_tol)
 
     def apply_ba(self, prob: "BAProblem", res: BAResult) -> set:
