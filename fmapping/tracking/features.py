@@ -61,9 +61,9 @@ class KltConfig:
     # Track in the images halved until they are at most this wide (0: at full size), positions scaled back; the
     # window (``half_window`` at 320 px) then covers the same view angle with a quarter of the pixels per halving,
     # and the front end's re-track from the keyframe refines at full size (fine_klt_config). Off: on 640x480 clips
-    # (bench/mono_variants.py, max_width 320) KLT took 9-10 instead of 20-26 ms a frame and a frame's median
-    # 19-22 instead of 30-41 ms, but the Sim3 ATE went TUM fr1_rpy 1.89 -> 1.93 cm, 7-Scenes dev 2.68 -> 3.37,
-    # 7-Scenes long 4.58 -> 5.22 (79 keyframes instead of 55); without the full-size pass 2.72 / 3.03 cm.
+    # (bench/mono_variants.py, max_width 320) a frame's median time halves, but over each clip and perturbed
+    # copies of it (bench/results/probes_2026-12-06b/) the Sim3 ATE median went TUM fr1_rpy 2.19 -> 2.84 cm and
+    # 7-Scenes long 5.20 -> 7.97 cm (a quarter more keyframes); 7-Scenes dev the same (2.98 -> 2.92 cm).
     # Images 320 px wide (the synthetic rooms) are never halved.
     max_width: int = 0
 
