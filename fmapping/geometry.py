@@ -239,6 +239,25 @@ def as_tensor_pose(c2w, dtype=torch.float32, device=None) -> Tensor:
 
 
 # --- numpy pose helpers
+def hat_np(v: np.ndarray) -> np.ndarray:
+    """Skew-symmetric matrices (..., 3, 3) of vectors (..., 3): ``hat_np(a) @ b = a x b`` (:func:`hat` in numpy)."""
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return out
+
+
+def so3_right_jacobian_inv_np(w: np.ndarray) -> np.ndarray:
+    """Inverse right Jacobians (N, 3, 3) of SO(3) at rotation vectors ``w`` (N, 3): ``log(exp(w) exp(d))
+    = w + Jr^-1(w) d`` to first order in ``d``."""
+    th = np.linalg.norm(w, axis=-1)
+    k = hat_np(w)
+    small = th < 1e-5
+    ts = np.where(small, 1.0, th)
+    c = np.where(small, 1.0 / 12.0 + th ** 2 / 720.0, 1.0 / ts ** 2 - (1.0 + np.cos(ts)) / (2.0 * ts * np.sin(ts)))
+    return np.eye(3) + 0.5 * k + c[..., None, None] * (k @ k)
+
+
 def se3_exp_np(xi: np.ndarray) -> np.ndarray:
     """se(3) twist (6,) (rho, phi) -> 4x4 float64.
 

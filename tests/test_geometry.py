@@ -162,3 +162,26 @@ def test_rotation_angle_np_matches_the_torch_angle_from_zero_to_pi():
     b = a @ step
     dt, dr = pose_distance(a, b)
     assert abs(dt - 0.5) < 1e-12 and abs(dr - 7.0) < 1e-9
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-6, 0.3, 2.5])
+def test_numpy_hat_and_so3_right_jacobian_inverse(angle):
+    """``hat_np`` equals the torch ``hat``; ``so3_right_jacobian_inv_np`` against central differences of
+    ``log(exp(w) exp(d))`` (scipy's rotations), below the series' threshold and up to 2.5 rad."""
+    from scipy.spatial.transform import Rotation
+
+    from fmapping.geometry import hat, hat_np, so3_right_jacobian_inv_np
+
+    rng = np.random.default_rng(5)
+    v = rng.normal(size=(4, 3))
+    np.testing.assert_array_equal(hat_np(v), hat(torch.tensor(v)).numpy())
+    w = rng.normal(size=3)
+    w = angle * w / np.linalg.norm(w)
+    num, eps = np.zeros((3, 3)), 1e-6
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = eps
+        plus = (Rotation.from_rotvec(w) * Rotation.from_rotvec(d)).as_rotvec()
+        minus = (Rotation.from_rotvec(w) * Rotation.from_rotvec(-d)).as_rotvec()
+        num[:, k] = (plus - minus) / (2 * eps)
+    np.testing.assert_allclose(so3_right_jacobian_inv_np(w[None])[0], num, atol=1e-8)

@@ -16,6 +16,8 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from fmapping.geometry import hat_np, so3_right_jacobian_inv_np
+
 
 def edge_residuals(rot: np.ndarray, trans: np.ndarray, edges_i: np.ndarray, edges_j: np.ndarray,
                    rel: np.ndarray, unit: float) -> np.ndarray:
@@ -30,25 +32,6 @@ def edge_residuals(rot: np.ndarray, trans: np.ndarray, edges_i: np.ndarray, edge
     return np.concatenate([Rotation.from_matrix(e_r).as_rotvec(), e_t / unit], axis=1)
 
 
-def _hat(v: np.ndarray) -> np.ndarray:
-    """Skew-symmetric matrices (N, 3, 3) of vectors (N, 3): ``hat(a) @ b = a x b``."""
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    return out
-
-
-def so3_right_jacobian_inv(w: np.ndarray) -> np.ndarray:
-    """Inverse right Jacobians (N, 3, 3) of SO(3) at rotation vectors ``w`` (N, 3): ``log(exp(w) exp(d))
-    = w + Jr^-1(w) d`` to first order in ``d``."""
-    th = np.linalg.norm(w, axis=-1)
-    k = _hat(w)
-    small = th < 1e-5
-    ts = np.where(small, 1.0, th)
-    c = np.where(small, 1.0 / 12.0 + th ** 2 / 720.0, 1.0 / ts ** 2 - (1.0 + np.cos(ts)) / (2.0 * ts * np.sin(ts)))
-    return np.eye(3) + 0.5 * k + c[..., None, None] * (k @ k)
-
-
 def edge_jacobians(rot: np.ndarray, trans: np.ndarray, edges_i: np.ndarray, edges_j: np.ndarray,
                    rel: np.ndarray, unit: float, res: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """d(residual)/d(pose i) and d(residual)/d(pose j), each (E, 6, 6), for each pose perturbed as
@@ -57,11 +40,11 @@ def edge_jacobians(rot: np.ndarray, trans: np.ndarray, edges_i: np.ndarray, edge
     ``e_t = Rrel^T (Ri^T (tj - ti) - trel) / unit``: ``d e_r = Jr^-1(e_r) Rj^T (dphi_j - dphi_i)``,
     ``d e_t = Rrel^T Ri^T (unit (dd_j - dd_i) + hat(tj - ti) dphi_i) / unit``."""
     ri, rj = rot[edges_i], rot[edges_j]
-    a = so3_right_jacobian_inv(res[:, :3]) @ np.swapaxes(rj, 1, 2)  # Jr^-1 Rj^T
+    a = so3_right_jacobian_inv_np(res[:, :3]) @ np.swapaxes(rj, 1, 2)  # Jr^-1 Rj^T
     b = np.swapaxes(rel[:, :3, :3], 1, 2) @ np.swapaxes(ri, 1, 2)  # Rrel^T Ri^T
     ji, jj = np.zeros((len(edges_i), 6, 6)), np.zeros((len(edges_i), 6, 6))
     ji[:, :3, :3], jj[:, :3, :3] = -a, a
-    ji[:, 3:, :3] = b @ _hat(trans[edges_j] - trans[edges_i]) / unit
+    ji[:, 3:, :3] = b @ hat_np(trans[edges_j] - trans[edges_i]) / unit
     ji[:, 3:, 3:], jj[:, 3:, 3:] = -b, b
     return ji, jj
 
