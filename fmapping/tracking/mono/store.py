@@ -250,11 +250,13 @@ class KeyframeStore:
         {keyframe: 4x4 correction, new pose @ inv(old pose)}; landmarks of other keyframes stay."""
         lids, first = self.obs.first_keyframe_arrays()
         for k, c in corr.items():
-            sel = lids[first == k]
-            if len(sel):
-                moved = np.stack([self.lm[i] for i in sel]) @ c[:3, :3].T + c[:3, 3]
-                for i, q in zip(sel.tolist(), moved):
-                    self.lm[i] = q
+            self._map_landmarks(lids[first == k], lambda x: x @ c[:3, :3].T + c[:3, 3])
+
+    def _map_landmarks(self, sel: np.ndarray, fn) -> None:
+        """Landmarks ``sel`` (ids) replaced by ``fn`` of them stacked (M, 3) -> (M, 3)."""
+        if len(sel):
+            for i, q in zip(sel.tolist(), fn(np.stack([self.lm[i] for i in sel]))):
+                self.lm[i] = q
 
     def spread_about(self, kfs: list, about: int) -> float:
         """Mean distance of the centres of keyframes ``kfs`` from keyframe ``about``'s."""
@@ -273,10 +275,7 @@ class KeyframeStore:
         else:
             lids, first = self.obs.first_keyframe_arrays()
             sel = lids[np.isin(first, np.fromiter(kfs, np.int64, len(kfs)))]
-        if len(sel):
-            moved = c0 + s * (np.stack([self.lm[i] for i in sel]) - c0)
-            for i, q in zip(sel.tolist(), moved):
-                self.lm[i] = q
+        self._map_landmarks(sel, lambda x: c0 + s * (x - c0))
         for i, (k, rel) in self.rel.items():
             if kfs is None or k in kfs:
                 rel = rel.copy()
