@@ -6,8 +6,10 @@ before / after comparisons of tracking changes on several datasets.
 Per dataset: the same calls as :meth:`fmapping.slam.SlamRun.run_mono` (world frame and scale anchor
 from the GT of frame 0 / the bootstrap / frame 14; the mapper does not influence the mono front end
 unless ``mono.dense_extra``), then Sim3 / SE3 ATE of every frame, the Sim3 scale, the local scale of
-consecutive segments (Sim3 of each segment alone: the scale drift), lost frames, keyframes, loops
-accepted and whether the GT contradicts each (bench/real.py's check, on the loop's own measurement).
+consecutive segments (Sim3 of each segment alone: the scale drift), the map's scale keyframe by keyframe
+against the GT depth (the frames' own, else a z-buffer of the data's ``gt_points.ply``) and its spread, lost
+frames, keyframes, loops accepted and whether the GT contradicts each (bench/real.py's check, on the loop's own
+measurement).
 GT is used for the anchor (as ``fmapping slam``) and the evaluation only.
 """
 from __future__ import annotations
@@ -37,9 +39,58 @@ def segment_scales(est: np.ndarray, gt: np.ndarray, length: int = 40) -> list:
     return out
 
 
+def gt_depth_source(frames, camera, surface=None, quarter: int = 4):
+    """``depth(k)`` -> (H, W) GT depth of frame ``k`` (0 where unknown): the frame's own depth when it has
+    one, else a z-buffer of the GT surface points ``surface`` (N, 3) seen from the frame's GT pose at
+    1/``quarter`` of the resolution (each point fills its cell; upsampled by repetition). None when neither."""
+    if frames[0].depth is not None:
+        return lambda k: np.asarray(frames[k].depth, np.float64)
+    if surface is None:
+        return None
+    pts = np.asarray(surface, np.float64)
+
+    def depth(k):
+        c2w = np.asarray(frames[k].c2w, np.float64)
+        x = (pts - c2w[:3, 3]) @ c2w[:3, :3]
+        x = x[x[:, 2] > 0.05]
+        w, h = -(-camera.width // quarter), -(-camera.height // quarter)
+        u = np.floor((camera.fx * x[:, 0] / x[:, 2] + camera.cx) / quarter).astype(np.int64)
+        v = np.floor((camera.fy * x[:, 1] / x[:, 2] + camera.cy) / quarter).astype(np.int64)
+        ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        z = np.full(h * w, np.inf)
+        np.minimum.at(z, v[ok] * w + u[ok], x[ok, 2])
+        z[~np.isfinite(z)] = 0.0
+        z = z.reshape(h, w).repeat(quarter, 0).repeat(quarter, 1)
+        return z[:camera.height, :camera.width]
+    return depth
+
+
+def keyframe_scales(fe, depth, min_points: int = 10) -> dict:
+    """How consistent the map's scale is, keyframe by keyframe: for each keyframe, the median over the
+    landmarks it observes of GT depth / estimated depth at their pixels (``depth(k)``, :func:`gt_depth_source`;
+    GT is used for this evaluation only). A map whose scale drifted has keyframes whose ratios differ even
+    where the trajectory's Sim3 fits. Returns {"per_keyframe": {k: ratio}, "spread": p95 / p5 of the ratios}."""
+    st, out = fe.store, {}
+    for k in sorted(st.kf_pose):
+        lids, uv = st.obs.of_keyframe(k)
+        if len(lids) < min_points:
+            continue
+        z = st.depths_seen(k, lids)[1]
+        g = depth(k)
+        h, w = g.shape
+        gz = g[np.clip(np.round(uv[:, 1]).astype(int), 0, h - 1), np.clip(np.round(uv[:, 0]).astype(int), 0, w - 1)]
+        ok = (gz > 0) & (z > 1e-6)
+        if ok.sum() >= min_points:
+            out[int(k)] = round(float(np.median(gz[ok] / z[ok])), 4)
+    r = np.array(list(out.values()))
+    return {"per_keyframe": out,
+            "spread": round(float(np.percentile(r, 95) / np.percentile(r, 5)), 4) if len(r) >= 3 else None}
+
+
 def run(data: str, cfg, max_frames=None) -> dict:
     from fmapping.datasets import open_dataset
     from fmapping.metrics import ate
+    from fmapping.ply import read_ply
     from fmapping.tracking.mono import MonoFrontend
     from real import check_loops, loop_capture
 
@@ -75,10 +126,14 @@ def run(data: str, cfg, max_frames=None) -> dict:
     e, g = np.stack(poses), np.stack(gt)
     s3, se = ate(e, g, "sim3"), ate(e, g, "se3")
     chk = check_loops(fe.loops, captured, e, gt, s3["scale"])
+    surface = Path(data) / "gt_points.ply"
+    depth = gt_depth_source(ds, ds.camera, read_ply(surface).points if surface.exists() else None)
+    kscale = keyframe_scales(fe, depth) if depth is not None else {"per_keyframe": {}, "spread": None}
     return {"data": Path(data).name, "frames": len(ds), "seconds": round(secs, 1),
             "ate_sim3_cm": round(100 * s3["rmse_m"], 2), "sim3_scale": round(s3["scale"], 4),
             "ate_se3_cm": round(100 * se["rmse_m"], 2), "rot_fit_deg": round(s3["rot_fit_mean_deg"], 2),
-            "segment_scales": segment_scales(e, g), "lost": len(lost), "reinits": list(fe.reinits),
+            "segment_scales": segment_scales(e, g), "map_scale_spread": kscale["spread"],
+            "keyframe_scales": kscale["per_keyframe"], "lost": len(lost), "reinits": list(fe.reinits),
             "bootstrap": {k: fe.init_info.get(k) for k in ("frame", "points", "scale_from")},
             "late_anchor": fe.late_anchor, "keyframes": len(fe.keyframe_poses()),
             "loops": len(fe.loops), "loops_refused": len(fe.loops_refused),

@@ -15,12 +15,14 @@ Data (default): the synthetic rooms of seeds 0-4 (``fmapping synth``, 200 frames
 ``--work`` when missing), and ``../shared/data/tum_fr1_rpy`` (TUM fr1 lens model, as bench/tracking.py)
 and ``7scenes_redkitchen_dev`` when present.
 
-Per run: Sim3 ATE of every frame's final pose, frames lost, keyframes, loop closures, the bundle
-adjustments (count, summed and median ms, mean residual evaluations), and per frame the wall time of
-``track`` (median / mean / p95: a keyframe's bundle adjustment counts in its frame) with the KLT and
-direct-alignment parts. Single runs of a monocular front end are chaotic (a different loop closure moves
-the ATE by 20 %): judge a variant over the data sets, not on one. Timings are this machine's, noisy
-(the CPU's speed swings): compare within one run of this script. Writes ``--out`` (JSON).
+Per run: Sim3 ATE of every frame's final pose, the spread of the map's scale over the keyframes against the GT
+depth (p95 / p5 of the keyframes' GT / estimated landmark depths, :func:`mono_only.keyframe_scales`), frames
+lost, keyframes, loop closures, the bundle adjustments (count, summed and median ms, mean residual
+evaluations), and per frame the wall time of ``track`` (median / mean / p95: a keyframe's bundle adjustment
+counts in its frame) with the KLT and direct-alignment parts. Single runs of a monocular front end are
+chaotic (a different loop closure moves the ATE by 20 %): judge a variant over the data sets, not on one.
+Timings are this machine's, noisy (the CPU's speed swings): compare within one run of this script. Writes
+``--out`` (JSON).
 """
 from __future__ import annotations
 
@@ -67,8 +69,9 @@ def make_configs(spec: str):
     return mono, trk
 
 
-def run(frames, camera, mono_cfg, trk_cfg) -> dict:
-    """One offline pass of the front end over ``frames`` (see the module docstring)."""
+def run(frames, camera, mono_cfg, trk_cfg, depth=None) -> dict:
+    """One offline pass of the front end over ``frames`` (see the module docstring); with ``depth`` (GT depth of a
+    frame, :func:`mono_only.gt_depth_source`) also the spread of the map's scale over the keyframes."""
     import fmapping.tracking.mono.frontend as fe_mod
     from fmapping.metrics import ate
     from fmapping.tracking.mono import MonoFrontend
@@ -113,7 +116,9 @@ def run(frames, camera, mono_cfg, trk_cfg) -> dict:
     a = ate(np.stack([est[k] for k in ids]), np.stack([frames[k].c2w for k in ids]), align="sim3")
     ba_ms = [b["ms"] for b in fe.ba_stats]
     w = np.asarray(wall)
-    return {"ate_sim3_cm": round(100 * a["rmse_m"], 3), "scale": round(a["scale"], 4), "lost": lost,
+    from mono_only import keyframe_scales
+    return {"ate_sim3_cm": round(100 * a["rmse_m"], 3), "scale": round(a["scale"], 4),
+            "map_scale_spread": keyframe_scales(fe, depth)["spread"] if depth is not None else None, "lost": lost,
             "keyframes": len(fe.store.kf_pose), "loops": len(fe.loops),
             "ba_count": len(ba_ms), "ba_ms_sum": round(float(np.sum(ba_ms)), 1),
             "ba_ms_median": round(float(np.median(ba_ms)), 1) if ba_ms else None,
@@ -157,7 +162,9 @@ def main() -> int:
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "mono_variants.json"))
     args = ap.parse_args()
     from fmapping.datasets import open_dataset
+    from fmapping.ply import read_ply
     from fmapping.runtime import limit_blas_threads, retain_freed_memory
+    from mono_only import gt_depth_source
 
     torch.set_num_threads(args.threads)
     retain_freed_memory()
@@ -169,8 +176,10 @@ def main() -> int:
     for name, folder, cam in datasets(args):
         ds = open_dataset(folder, camera=cam)
         frames = [ds[k] for k in range(len(ds))]
+        surface = Path(folder) / "gt_points.ply"
+        depth = gt_depth_source(frames, ds.camera, read_ply(surface).points if surface.exists() else None)
         for v, _ in variants:
-            r = run(frames, ds.camera, *configs[v])
+            r = run(frames, ds.camera, *configs[v], depth=depth)
             res["runs"].setdefault(name, {})[v] = r
             print(f"{name:14s} {v:10s} " + ("  ".join(f"{k} {x}" for k, x in r.items())), flush=True)
             Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -284,6 +284,29 @@ def test_landmarks_move_and_scale_with_the_keyframe_that_first_saw_them():
     assert np.array_equal(np.stack(store.lm), c0 + 0.5 * (before - c0))
 
 
+def test_depths_seen_are_the_camera_depths_of_a_keyframes_landmarks():
+    """``KeyframeStore.depths_seen`` (what bench/mono_only.py's map-scale check reads) against the camera-frame
+    points :meth:`cam_points` builds at the same landmarks, and halved by a rescale of everything."""
+    from fmapping.camera import PinholeCamera
+    from fmapping.geometry import se3_exp_np
+    from fmapping.tracking.mono import MonoConfig
+    from fmapping.tracking.mono.store import KeyframeStore
+
+    rng = np.random.default_rng(5)
+    store = KeyframeStore(PinholeCamera(250.0, 250.0, 160.0, 120.0, 320, 240), MonoConfig())
+    store.kf_pose[3] = se3_exp_np(rng.normal(0, 0.3, 6))
+    cam = np.c_[rng.uniform(-1, 1, (40, 2)), rng.uniform(1, 4, 40)]
+    store.lm = list(cam @ store.kf_pose[3][:3, :3].T + store.kf_pose[3][:3, 3])
+    store.obs.extend(3, np.arange(40)[::2], rng.uniform(0, 300, (20, 2)))
+    lids, z = store.depths_seen(3)
+    assert np.array_equal(lids, np.arange(40)[::2])
+    np.testing.assert_allclose(z, cam[::2, 2], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(z, store.cam_points(3, lids, store.obs.of_keyframe(3)[1])[:, 2], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(store.depths_seen(3, [1, 7])[1], cam[[1, 7], 2], rtol=0, atol=1e-12)
+    store.scale_part(store.kf_pose[3][:3, 3] + 1.0, 0.5)
+    np.testing.assert_allclose(store.depths_seen(3)[1], 0.5 * cam[::2, 2], rtol=0, atol=1e-12)
+
+
 def test_observations_table_matches_a_list_of_tuples():
     """The store's observation table against the plain list of ``(keyframe, landmark, u, v)`` tuples it
     replaced, under random appends, drops and in-place pixel edits: rows, per-keyframe lookups and each

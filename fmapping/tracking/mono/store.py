@@ -258,6 +258,14 @@ class KeyframeStore:
             for i, q in zip(sel.tolist(), fn(np.stack([self.lm[i] for i in sel]))):
                 self.lm[i] = q
 
+    def depths_seen(self, kf: int, lids: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+        """Landmark ids and their depths in keyframe ``kf``'s camera: of the landmarks it observes, or of ``lids``."""
+        lids = np.asarray(self.obs.of_keyframe(kf)[0] if lids is None else lids, np.int64)
+        if not len(lids):
+            return lids, np.zeros(0)
+        c2w = self.kf_pose[kf]
+        return lids, (np.stack([self.lm[i] for i in lids.tolist()]) - c2w[:3, 3]) @ c2w[:3, 2]
+
     def spread_about(self, kfs: list, about: int) -> float:
         """Mean distance of the centres of keyframes ``kfs`` from keyframe ``about``'s."""
         c0 = self.kf_pose[about][:3, 3]
