@@ -91,6 +91,7 @@ def run(data: str, cfg, max_frames=None) -> dict:
     from fmapping.datasets import open_dataset
     from fmapping.metrics import ate
     from fmapping.ply import read_ply
+    from fmapping.tracking.features import to_u8
     from fmapping.tracking.mono import MonoFrontend
     from real import check_loops, loop_capture
 
@@ -125,7 +126,7 @@ def run(data: str, cfg, max_frames=None) -> dict:
         poses.append(last)
     e, g = np.stack(poses), np.stack(gt)
     s3, se = ate(e, g, "sim3"), ate(e, g, "se3")
-    chk = check_loops(fe.loops, captured, e, gt, s3["scale"])
+    chk = check_loops(fe.loops, captured, e, gt, s3["scale"], gray=lambda k: to_u8(ds[k].rgb), K=ds.camera.K)
     surface = Path(data) / "gt_points.ply"
     depth = gt_depth_source(ds, ds.camera, read_ply(surface).points if surface.exists() else None)
     kscale = keyframe_scales(fe, depth) if depth is not None else {"per_keyframe": {}, "spread": None}
@@ -138,10 +139,12 @@ def run(data: str, cfg, max_frames=None) -> dict:
             "late_anchor": fe.late_anchor, "keyframes": len(fe.keyframe_poses()),
             "loops": len(fe.loops), "loops_refused": len(fe.loops_refused),
             "loops_contradicted": chk["contradicted"],
+            "loops_contradicted_images_agree": chk["contradicted_images_agree"],
             "loop_errors": [(r["keyframe"], r["frame"], round(r.get("loop_err_m", -1), 3),
                              round(r.get("loop_err_deg", -1), 2), rec.get("inliers"), rec.get("points"),
                              None if rec.get("cross_deg") is None else round(rec["cross_deg"], 2),
-                             None if rec.get("cross_dist") is None else round(rec["cross_dist"], 4))
+                             None if rec.get("cross_dist") is None else round(rec["cross_dist"], 4),
+                            r.get("images"))
                             for r, rec in zip(chk["loops"], fe.loops)],
             "refused": [(r["keyframe"], r["frame"], r.get("cross_deg"), r.get("why")) for r in fe.loops_refused]}
 

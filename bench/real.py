@@ -85,6 +85,7 @@ TARGETS = {
                      ("loops_accepted", "loops accepted", None, None, 0),
                      ("loops_contradicted",
                       f"loops the GT contradicts (> {LOOP_MAX_M * 100:g} cm / {LOOP_MAX_DEG:g} deg)", "<=", 0, 0),
+                     ("loops_contradicted_images_agree", "... of which the images side with the GT", None, None, 0),
                      ("window_seconds_median", "window s median", None, None, 2),
                      ("total_seconds", "total s", None, None, 0)],
     # per-seed values; the table shows the worst seed and every seed
@@ -276,14 +277,59 @@ def loop_capture():
         cls._correct_loop = orig
 
 
+def images_verdict(gray_a: np.ndarray, gray_b: np.ndarray, K: np.ndarray, rel_loop: np.ndarray,
+                   rel_gt: np.ndarray, min_matches: int = 20) -> Optional[dict]:
+    """Which relative pose the two images of a loop prefer, the loop's or the GT's (``rel`` = inv(X_a) @ X_b,
+    camera-to-world): ORB matches between the grey images (ratio test 0.75, then a fundamental-matrix RANSAC at
+    3 px, no pose used), and the median Sampson distance (px) of those matches under each relative pose with
+    the intrinsics ``K``. It depends on rotation and the direction of translation only, not on scale. None
+    with fewer than ``min_matches`` matches."""
+    import cv2
+
+    orb = cv2.ORB_create(3000)
+    ka, da = orb.detectAndCompute(gray_a, None)
+    kb, db = orb.detectAndCompute(gray_b, None)
+    if da is None or db is None:
+        return None
+    pairs = [m for m in cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(da, db, k=2) if len(m) == 2]
+    good = [m for m, n in pairs if m.distance < 0.75 * n.distance]
+    if len(good) < min_matches:
+        return None
+    p0 = np.float64([ka[m.queryIdx].pt for m in good])
+    p1 = np.float64([kb[m.trainIdx].pt for m in good])
+    _, inl = cv2.findFundamentalMat(p0, p1, cv2.FM_RANSAC, 3.0, 0.999)
+    if inl is None or int(inl.sum()) < min_matches:
+        return None
+    inl = inl.ravel().astype(bool)
+    p0, p1 = p0[inl], p1[inl]
+    k_inv = np.linalg.inv(K)
+
+    def sampson(rel: np.ndarray) -> float:
+        ab = np.linalg.inv(rel)  # camera a's points into camera b: x_b = R x_a + t
+        t = ab[:3, 3]
+        tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+        f = k_inv.T @ tx @ ab[:3, :3] @ k_inv
+        x0, x1 = np.c_[p0, np.ones(len(p0))], np.c_[p1, np.ones(len(p1))]
+        a, b = x0 @ f.T, x1 @ f
+        d = np.sqrt(np.sum(x1 * a, 1) ** 2 / (a[:, 0] ** 2 + a[:, 1] ** 2 + b[:, 0] ** 2 + b[:, 1] ** 2))
+        return float(np.median(d))
+
+    loop_px, gt_px = sampson(rel_loop), sampson(rel_gt)
+    return {"matches": int(len(p0)), "sampson_px_loop": round(loop_px, 3), "sampson_px_gt": round(gt_px, 3),
+            "images_side_with": "gt" if gt_px < loop_px else "loop"}
+
+
 def check_loops(loops: list, captured: Optional[list], est: np.ndarray, gt: list, sim3_scale: float,
-                output_scale: float = 1.0) -> dict:
+                output_scale: float = 1.0, gray=None, K: Optional[np.ndarray] = None) -> dict:
     """Each accepted loop (keyframe -> frame) against the GT relative pose: the loop's own measurement
     (captured; else the final trajectory's relative pose, which the pose graph pulled to it), and for
     comparison the chain's before the correction and the final trajectory's (``est``, the written
     trajectory). Translations are compared after the trajectory's Sim3 scale ``sim3_scale``; the front
     end's own poses are first multiplied by ``output_scale`` (its units -> the written trajectory's).
-    A loop is contradicted when its relative pose is off by > LOOP_MAX_M or > LOOP_MAX_DEG."""
+    A loop is contradicted when its relative pose is off by > LOOP_MAX_M or > LOOP_MAX_DEG. With ``gray``
+    (frame index -> grey image) and ``K``, each loop's measurement also goes before its two images
+    (:func:`images_verdict`): over 100+ frames the 7-Scenes GT (the depth camera's KinectFusion poses) drifts
+    off the colour images by pixels, so the GT alone can contradict a loop the images confirm."""
     from fmapping.geometry import inv_pose
 
     cap = {(c["keyframe"], c["frame"]): c for c in (captured or []) if "loop_rel" in c}
@@ -307,6 +353,8 @@ def check_loops(loops: list, captured: Optional[list], est: np.ndarray, gt: list
             row["chain_err_m"], row["chain_err_deg"] = rel_error(c["chain_rel"], rel_gt, sim3_scale * output_scale)
             row["checked"] = "loop measurement"
             err = (row["loop_err_m"], row["loop_err_deg"])
+            if gray is not None and K is not None:
+                row["images"] = images_verdict(gray(k), gray(f), K, c["loop_rel"], rel_gt)
         else:
             row["checked"] = "final trajectory"
             err = final
@@ -314,7 +362,8 @@ def check_loops(loops: list, captured: Optional[list], est: np.ndarray, gt: list
             row["contradicted"] = bool(err[0] > LOOP_MAX_M or err[1] > LOOP_MAX_DEG)
             bad += row["contradicted"]
         out.append(row)
-    return {"loops": out, "contradicted": bad}
+    sided = [r for r in out if r.get("contradicted") and (r.get("images") or {}).get("images_side_with") == "gt"]
+    return {"loops": out, "contradicted": bad, "contradicted_images_agree": len(sided)}
 
 
 # ----------------------------------------------------------------------------- pictures
@@ -517,10 +566,16 @@ class Bench:
         r = self._slam_7scenes("7scenes_long", "7scenes_redkitchen_long", variant, 120 if self.a.quick else None)
         st = r["_stats"]
         scale = (r["sim3_scale"] or 1.0, r["output_scale"] or 1.0)
-        chk = check_loops(st.get("loop_closures") or [], r["_captured"], r["_est"], r["_gt"], *scale)
+        from fmapping.datasets import open_dataset
+        from fmapping.tracking.features import to_u8
+
+        ds = open_dataset(DATA / "7scenes_redkitchen_long")
+        chk = check_loops(st.get("loop_closures") or [], r["_captured"], r["_est"], r["_gt"], *scale,
+                          gray=lambda i: to_u8(ds[i].rgb), K=ds.camera.K)
         r.update({"loops_accepted": len(st.get("loop_closures") or []),
                   "loops_refused": len(st.get("loops_refused") or []),
                   "loops_contradicted": chk["contradicted"], "loops": chk["loops"],
+                  "loops_contradicted_images_agree": chk["contradicted_images_agree"],
                   "loop_check_scales": {"sim3": scale[0], "output": scale[1]},
                   "loop_capture": "on" if r["_captured"] is not None else "unavailable"})
         self.put("7scenes_long", variant, _public(r))
