@@ -126,7 +126,8 @@ def run(data: str, cfg, max_frames=None) -> dict:
         poses.append(last)
     e, g = np.stack(poses), np.stack(gt)
     s3, se = ate(e, g, "sim3"), ate(e, g, "se3")
-    chk = check_loops(fe.loops, captured, e, gt, s3["scale"], gray=lambda k: to_u8(ds[k].rgb), K=ds.camera.K)
+    chk = check_loops(fe.loops, captured, e, gt, s3["scale"], gray=lambda k: to_u8(ds[k].rgb),
+                      camera=ds.camera)
     surface = Path(data) / "gt_points.ply"
     depth = gt_depth_source(ds, ds.camera, read_ply(surface).points if surface.exists() else None)
     kscale = keyframe_scales(fe, depth) if depth is not None else {"per_keyframe": {}, "spread": None}

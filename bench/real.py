@@ -277,13 +277,10 @@ def loop_capture():
         cls._correct_loop = orig
 
 
-def images_verdict(gray_a: np.ndarray, gray_b: np.ndarray, K: np.ndarray, rel_loop: np.ndarray,
-                   rel_gt: np.ndarray, min_matches: int = 20) -> Optional[dict]:
-    """Which relative pose the two images of a loop prefer, the loop's or the GT's (``rel`` = inv(X_a) @ X_b,
-    camera-to-world): ORB matches between the grey images (ratio test 0.75, then a fundamental-matrix RANSAC at
-    3 px, no pose used), and the median Sampson distance (px) of those matches under each relative pose with
-    the intrinsics ``K``. It depends on rotation and the direction of translation only, not on scale. None
-    with fewer than ``min_matches`` matches."""
+def orb_matches(gray_a: np.ndarray, gray_b: np.ndarray, min_matches: int = 20,
+                ransac_px: float = 3.0) -> Optional[tuple[np.ndarray, np.ndarray]]:
+    """Point matches (two (N, 2) arrays) between two grey images found without any pose: ORB features, the
+    ratio test (0.75), then a fundamental-matrix RANSAC at ``ransac_px``. None with fewer than ``min_matches``."""
     import cv2
 
     orb = cv2.ORB_create(3000)
@@ -297,37 +294,51 @@ def images_verdict(gray_a: np.ndarray, gray_b: np.ndarray, K: np.ndarray, rel_lo
         return None
     p0 = np.float64([ka[m.queryIdx].pt for m in good])
     p1 = np.float64([kb[m.trainIdx].pt for m in good])
-    _, inl = cv2.findFundamentalMat(p0, p1, cv2.FM_RANSAC, 3.0, 0.999)
+    _, inl = cv2.findFundamentalMat(p0, p1, cv2.FM_RANSAC, ransac_px, 0.999)
     if inl is None or int(inl.sum()) < min_matches:
         return None
     inl = inl.ravel().astype(bool)
-    p0, p1 = p0[inl], p1[inl]
-    k_inv = np.linalg.inv(K)
+    return p0[inl], p1[inl]
 
-    def sampson(rel: np.ndarray) -> float:
-        ab = np.linalg.inv(rel)  # camera a's points into camera b: x_b = R x_a + t
-        t = ab[:3, 3]
-        tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-        f = k_inv.T @ tx @ ab[:3, :3] @ k_inv
-        x0, x1 = np.c_[p0, np.ones(len(p0))], np.c_[p1, np.ones(len(p1))]
-        a, b = x0 @ f.T, x1 @ f
-        d = np.sqrt(np.sum(x1 * a, 1) ** 2 / (a[:, 0] ** 2 + a[:, 1] ** 2 + b[:, 0] ** 2 + b[:, 1] ** 2))
-        return float(np.median(d))
 
-    loop_px, gt_px = sampson(rel_loop), sampson(rel_gt)
-    return {"matches": int(len(p0)), "sampson_px_loop": round(loop_px, 3), "sampson_px_gt": round(gt_px, 3),
+def sampson_px(camera, rel: np.ndarray, p0: np.ndarray, p1: np.ndarray) -> float:
+    """Median Sampson distance (pixels) of matches ``p0`` (image a) -> ``p1`` (image b) under the relative pose
+    ``rel`` = inv(X_a) @ X_b (camera-to-world poses): it depends on the rotation and the direction of the
+    translation only."""
+    ab = np.linalg.inv(rel)  # camera a's points into camera b: x_b = R x_a + t
+    t = ab[:3, 3]
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    k_inv = np.linalg.inv(camera.K)
+    f = k_inv.T @ tx @ ab[:3, :3] @ k_inv
+    x0, x1 = np.c_[p0, np.ones(len(p0))], np.c_[p1, np.ones(len(p1))]
+    a, b = x0 @ f.T, x1 @ f
+    return float(np.median(np.sqrt(np.sum(x1 * a, 1) ** 2 / (a[:, 0] ** 2 + a[:, 1] ** 2 + b[:, 0] ** 2
+                                                             + b[:, 1] ** 2))))
+
+
+def images_verdict(gray_a: np.ndarray, gray_b: np.ndarray, camera, rel_loop: np.ndarray,
+                   rel_gt: np.ndarray) -> Optional[dict]:
+    """Which relative pose the two images of a loop prefer, the loop's or the GT's (``rel`` = inv(X_a) @ X_b,
+    camera-to-world): ORB matches found without any pose (:func:`orb_matches`) and their median Sampson
+    distance (px) under each (:func:`sampson_px`: rotation and the direction of translation, not scale). None
+    without enough matches."""
+    m = orb_matches(gray_a, gray_b)
+    if m is None:
+        return None
+    loop_px, gt_px = sampson_px(camera, rel_loop, *m), sampson_px(camera, rel_gt, *m)
+    return {"matches": int(len(m[0])), "sampson_px_loop": round(loop_px, 3), "sampson_px_gt": round(gt_px, 3),
             "images_side_with": "gt" if gt_px < loop_px else "loop"}
 
 
 def check_loops(loops: list, captured: Optional[list], est: np.ndarray, gt: list, sim3_scale: float,
-                output_scale: float = 1.0, gray=None, K: Optional[np.ndarray] = None) -> dict:
+                output_scale: float = 1.0, gray=None, camera=None) -> dict:
     """Each accepted loop (keyframe -> frame) against the GT relative pose: the loop's own measurement
     (captured; else the final trajectory's relative pose, which the pose graph pulled to it), and for
     comparison the chain's before the correction and the final trajectory's (``est``, the written
     trajectory). Translations are compared after the trajectory's Sim3 scale ``sim3_scale``; the front
     end's own poses are first multiplied by ``output_scale`` (its units -> the written trajectory's).
     A loop is contradicted when its relative pose is off by > LOOP_MAX_M or > LOOP_MAX_DEG. With ``gray``
-    (frame index -> grey image) and ``K``, each loop's measurement also goes before its two images
+    (frame index -> grey image) and ``camera``, each loop's measurement also goes before its two images
     (:func:`images_verdict`): over 100+ frames the 7-Scenes GT (the depth camera's KinectFusion poses) drifts
     off the colour images by pixels, so the GT alone can contradict a loop the images confirm."""
     from fmapping.geometry import inv_pose
@@ -353,8 +364,8 @@ def check_loops(loops: list, captured: Optional[list], est: np.ndarray, gt: list
             row["chain_err_m"], row["chain_err_deg"] = rel_error(c["chain_rel"], rel_gt, sim3_scale * output_scale)
             row["checked"] = "loop measurement"
             err = (row["loop_err_m"], row["loop_err_deg"])
-            if gray is not None and K is not None:
-                row["images"] = images_verdict(gray(k), gray(f), K, c["loop_rel"], rel_gt)
+            if gray is not None and camera is not None:
+                row["images"] = images_verdict(gray(k), gray(f), camera, c["loop_rel"], rel_gt)
         else:
             row["checked"] = "final trajectory"
             err = final
@@ -571,7 +582,7 @@ class Bench:
 
         ds = open_dataset(DATA / "7scenes_redkitchen_long")
         chk = check_loops(st.get("loop_closures") or [], r["_captured"], r["_est"], r["_gt"], *scale,
-                          gray=lambda i: to_u8(ds[i].rgb), K=ds.camera.K)
+                          gray=lambda i: to_u8(ds[i].rgb), camera=ds.camera)
         r.update({"loops_accepted": len(st.get("loop_closures") or []),
                   "loops_refused": len(st.get("loops_refused") or []),
                   "loops_contradicted": chk["contradicted"], "loops": chk["loops"],
