@@ -3,16 +3,17 @@ side by side for front-end variants.
 
     python bench/tracker_realtime.py                                     # the defaults, 3 rounds
     python bench/tracker_realtime.py --variants "wait:loop_ba_defer_frames=0" --rounds 5
+    python bench/tracker_realtime.py --variants "direct:frame_pose='direct'"   # every frame aligned first
 
-What ``fmapping up`` does around the tracker, without the other services: a player thread puts frame k and its
-GT anchor pose into the tracker's bounded inbox (:class:`services.core_support.Inbox`) at k / ``--fps`` seconds
-whether the tracker is ready or not; the main thread runs the tracker shell's loop (``services.tracker``: take
-the next message, :meth:`TrackerCore.apply`), with the keyframe bundle adjustment in its worker thread
-(``--ba-thread on``, as at a camera's rate) and the service's skip rule. ``--load`` processes spin a one-thread
-torch loop meanwhile, standing in for the mapper. A frame's latency is from its arrival in the inbox to the
-tracker's first answer for it (as ``bench/system.py`` measures between processes, without the transport and
-the other services' CPU). "once tracking": frames that arrived after the first pose came out (the bootstrap
-and the late anchor hold the first ~15 frames' poses by design).
+What ``fmapping up`` does around the tracker, without the other services: a player thread puts frame k and its GT
+anchor pose into the tracker's bounded inbox (:class:`services.core_support.Inbox`) at k / ``--fps`` seconds
+whether the tracker is ready or not; the main thread runs the tracker shell's loop (``services.tracker``: take the
+next message, :meth:`TrackerCore.apply`), with the keyframe bundle adjustment in its worker thread (``--ba-thread
+on``, as at a camera's rate), the service's camera-rate ``--frame-pose pnp`` and its skip rule. ``--load``
+processes spin a one-thread torch loop meanwhile, standing in for the mapper. A frame's latency is from its
+arrival in the inbox to the tracker's first answer for it (as ``bench/system.py`` measures between processes,
+without the transport and the other services' CPU). "once tracking": frames that arrived after the first pose came
+out (the bootstrap and the late anchor hold the first ~15 frames' poses by design).
 
 A variant is ``name:key=value;key=value`` as in ``bench/mono_variants.py``: ``MonoConfig`` fields (``klt.*`` /
 ``loop.*`` of its parts), ``tracker.*`` of the ``TrackerConfig`` (values are Python literals). The variants
@@ -62,6 +63,9 @@ def encode_stream(ds) -> tuple[list[bytes], list[bytes]]:
     gts = [P.encode(P.Pose(seq=k, timestamp=float(ds[k].timestamp), c2w=np.asarray(ds[k].c2w, np.float64),
                            source="gt")) for k in range(len(ds))]
     return frames, gts
+
+
+SERVICE_FRAME_POSE = "pnp"  # what the tracker service's CLI runs at a camera's rate (services.tracker --frame-pose)
 
 
 def run_once(frames: list, gts: list, gt_c2w: list, mono, trk, fps: float, tail_s: float = 3.0) -> dict:
@@ -174,7 +178,9 @@ def main(argv=None) -> int:
     frames, gts = encode_stream(ds)
     gt_c2w = [np.asarray(ds[k].c2w, np.float64) for k in range(len(ds))]
     variants = [("base", "")] + [tuple(v.split(":", 1)) if ":" in v else (v, "") for v in a.variants]
-    configs = {name: make_configs(spec) for name, spec in variants}  # (MonoConfig, TrackerConfig)
+    # (MonoConfig, TrackerConfig); the service's own camera-rate choice first (services.tracker --frame-pose), then
+    # the variant's settings
+    configs = {name: make_configs(f"frame_pose={SERVICE_FRAME_POSE!r};{spec}".rstrip(";")) for name, spec in variants}
     stop = mp.Event()
     load = [mp.Process(target=spin, args=(stop, a.load_nice), daemon=True) for _ in range(a.load)]
     for p in load:

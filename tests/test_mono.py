@@ -140,6 +140,63 @@ def test_mono_recovers_a_frame_the_direct_alignment_loses_from_its_landmarks(roo
         assert dt < 0.012 and dr < 0.4, (dt, dr)
 
 
+def test_mono_poses_frames_from_their_tracked_landmarks_and_aligns_only_those_it_cannot(room320):
+    """MonoConfig.frame_pose "pnp": a frame's pose comes from its KLT-tracked landmarks (PnP from the motion
+    model's prediction), checked photometrically, and the direct alignment runs only when that fails. On the
+    40-frame room nearly every tracked frame is posed so, and the trajectory is as close to the GT as with the
+    direct alignment first (measured: Sim3 ATE 0.259 cm against 0.263 cm, 32 frames by PnP). One frame whose
+    tracks are scrambled is aligned instead, and still tracked."""
+    import dataclasses
+
+    from fmapping.datasets import open_dataset
+    from fmapping.metrics import ate
+    from fmapping.tracking.mono import MonoConfig
+    from fmapping.tracking.mono import frontend as F
+
+    ds = open_dataset(room320)
+    direct, g = _run_mono(ds, MonoConfig())
+    assert direct.frames_pnp == 0
+    target, aligned = 25, []
+    real_track, real_landmarks = F.DirectTracker.track, F.KeyframeStore.tracked_landmarks
+
+    def spy_track(self, rgb, c2w_guess=None):
+        aligned.append(len(aligned))
+        return real_track(self, rgb, c2w_guess)
+
+    def scrambled(self):  # frame `target`: its tracks' pixels shuffled among the landmarks
+        found = real_landmarks(self)
+        if found is not None and self._scramble:
+            x, uv = found
+            return x, uv[np.random.default_rng(0).permutation(len(uv))]
+        return found
+
+    F.DirectTracker.track, F.KeyframeStore.tracked_landmarks = spy_track, scrambled
+    F.KeyframeStore._scramble = False
+    seen = {}
+
+    def per_frame(k):
+        F.KeyframeStore._scramble = k == target
+        seen[k] = len(aligned)
+        return None
+
+    try:
+        quick, _ = _run_mono(ds, dataclasses.replace(MonoConfig(), frame_pose="pnp"), extra_of=per_frame)
+    finally:
+        F.DirectTracker.track, F.KeyframeStore.tracked_landmarks = real_track, real_landmarks
+        del F.KeyframeStore._scramble
+    tracked = len(ds) - min(seen)
+    assert quick.frames_pnp >= 0.8 * tracked, (quick.frames_pnp, tracked)
+    in_tracking = len(aligned) - seen[min(seen)]  # (the bootstrap aligns its own frames)
+    assert in_tracking == tracked - quick.frames_pnp  # every other frame was aligned, once
+    assert seen[target + 1] - seen[target] == 1  # the scrambled frame among them
+    err = []
+    for fe in (direct, quick):
+        p = fe.poses()
+        ks = sorted(p)
+        err.append(ate(np.stack([p[k] for k in ks]), np.stack([g[k] for k in ks]), "sim3")["rmse_m"])
+    assert err[1] < 1.2 * err[0] + 5e-4 and err[1] < 0.005, err
+
+
 def test_moved_poses_hands_on_only_what_moved_beyond_the_thresholds():
     from scipy.spatial.transform import Rotation
 

@@ -8,7 +8,8 @@ import pytest
 from fmapping.camera import PinholeCamera
 from fmapping.geometry import inv_pose, pose_distance, se3_exp_np
 from fmapping.tracking.direct_align import (
-    AlignConfig, align, bilinear, build_pyramid, make_reference, select_pixels, to_gray, warp_residuals, with_gradients,
+    AlignConfig, align, bilinear, build_pyramid, evaluate_pose, make_reference, select_pixels, to_gray, warp_residuals,
+    with_gradients,
 )
 from fmapping.tracking.direct_tracker import DirectTracker, TrackerConfig
 
@@ -130,6 +131,49 @@ def test_pose_recovery_on_synthetic_pair(scene_pair):
     dt, dr = pose_distance(est, c2w1)
     assert dt < 0.002 and dr < 0.1, (dt, dr)
     assert res.ok and res.inlier_ratio > 0.9
+
+
+def test_evaluate_pose_measures_what_align_measures_at_its_optimum_and_fits_a_known_exposure(scene_pair):
+    """evaluate_pose: the residual, inlier and visible ratios align reports, for a pose it is given (a fast
+    path of the same measures: one warp, no pose steps). At align's own optimum both agree; with the frame's
+    exposure changed by a known gain and offset it recovers them; at a pose 2 deg off the inliers collapse."""
+    cam, c2w0, c2w1, rgb0, d0, rgb1, _ = scene_pair
+    cfg = AlignConfig()
+    ref = make_reference(rgb0, d0, cam, c2w0, levels=3, num_points=2000)
+    gray = to_gray(rgb1)
+    best = align(ref, build_pyramid(gray, cam, 3), np.eye(4), cfg)
+    ev = evaluate_pose(ref, gray, cam, best.t_cr, cfg, best.affine)
+    assert ev.ok and ev.iterations == 0
+    np.testing.assert_allclose(ev.t_cr, best.t_cr, atol=1e-12)  # the pose is not moved
+    assert abs(ev.rmse - best.rmse) < 0.1 * best.rmse and abs(ev.inlier_ratio - best.inlier_ratio) < 0.01
+    assert ev.visible_ratio == pytest.approx(best.visible_ratio, abs=1e-9)
+
+    gain, offset = 1.15, -0.04  # observed = gain * I + offset: affine (log gain, offset)
+    darker = np.clip(gain * gray + offset, 0.0, 1.0).astype(np.float32)
+    from_zero = evaluate_pose(ref, darker, cam, best.t_cr, cfg, np.zeros(2))
+    a0, b0 = best.affine  # gray ~ exp(a0) I_ref + b0, so darker ~ exp(a0 + log gain) I_ref + gain b0 + offset
+    np.testing.assert_allclose(from_zero.affine, [a0 + math.log(gain), gain * b0 + offset], atol=0.01)
+    assert from_zero.inlier_ratio > best.inlier_ratio - 0.02
+    off = evaluate_pose(ref, gray, cam, se3_exp_np(np.r_[0, 0, 0, 0, math.radians(2.0), 0]) @ best.t_cr, cfg,
+                        best.affine)
+    assert off.inlier_ratio < best.inlier_ratio - 0.2, (off.inlier_ratio, best.inlier_ratio)
+
+
+def test_tracker_verify_takes_a_good_pose_from_elsewhere_and_refuses_a_wrong_one(scene_pair):
+    """DirectTracker.verify judges a pose found elsewhere with track's own checks: the true pose of the
+    second view passes (and feeds the motion model), one 0.25 m off does not and changes nothing."""
+    cam, c2w0, c2w1, rgb0, d0, rgb1, _ = scene_pair
+    tr = DirectTracker(cam, TrackerConfig(num_points=1500))
+    tr.set_reference(rgb0, d0, c2w0, 0)
+    tr.observe(c2w0)
+    pred = tr.predict()
+    wrong = c2w1 @ se3_exp_np(np.r_[0.25, 0, 0, 0, 0, 0])
+    assert tr.verify(rgb1, wrong) is None
+    np.testing.assert_allclose(tr.predict(), pred, atol=1e-12)
+    got = tr.verify(rgb1, c2w1)
+    assert got is not None and not got.lost and got.inlier_ratio > 0.9
+    assert pose_distance(got.c2w, c2w1)[0] < 1e-9
+    assert pose_distance(tr.motion_history[-1], c2w1)[0] < 1e-9
 
 
 def test_tracker_flags_noise_frame_and_keeps_pose(scene_pair):

@@ -29,8 +29,8 @@ import numpy as np
 from fmapping.camera import PinholeCamera
 from fmapping.geometry import inv_pose, orthonormalize, pose_distance, scale_about
 from fmapping.tracking.direct_align import (
-    AlignConfig, AlignResult, DepthSource, Reference, align, build_pyramid, image_valid_mask, make_reference,
-    reference_from_points, to_gray,
+    AlignConfig, AlignResult, DepthSource, Reference, align, build_pyramid, evaluate_pose, image_valid_mask,
+    make_reference, reference_from_points, to_gray,
 )
 
 
@@ -240,6 +240,27 @@ class DirectTracker:
         self._history = (self._history + [c2w])[-2:]
         return TrackResult(c2w, False, relocalised, self._need_keyframe(res, c2w, ref), res.rmse, res.inlier_ratio,
                            res.visible_ratio, res.iterations, ms, ref.frame_index)
+
+    def verify(self, rgb: np.ndarray, c2w: np.ndarray) -> Optional[TrackResult]:
+        """Judge a pose of ``rgb`` found elsewhere (e.g. PnP on tracked landmarks) as :meth:`track` judges
+        its own: the reference's points are warped into the frame at ``c2w`` (not moved; the brightness
+        gain / offset fitted, :func:`~fmapping.tracking.direct_align.evaluate_pose`) and the same loss checks
+        run against the motion model's prediction. Passed: the pose is taken as tracked (motion model,
+        keyframe decision) and returned as a :class:`TrackResult`; failed: None, and nothing changes."""
+        if self.reference is None:
+            raise RuntimeError("DirectTracker.verify called before set_reference")
+        t0 = time.perf_counter()
+        ref, pred = self.reference, self.predict()
+        c2w = orthonormalize(np.asarray(c2w, np.float64))
+        res = evaluate_pose(ref, to_gray(rgb), self.camera, inv_pose(c2w) @ ref.c2w, self.cfg.align,
+                            self._last_affine, mask=image_valid_mask(rgb))
+        if self._check(res, c2w, pred, ref):
+            return None
+        self._losses = 0
+        self._last_affine = res.affine
+        self._history = (self._history + [c2w])[-2:]
+        return TrackResult(c2w, False, False, self._need_keyframe(res, c2w, ref), res.rmse, res.inlier_ratio,
+                           res.visible_ratio, 0, (time.perf_counter() - t0) * 1000.0, ref.frame_index)
 
     def _need_keyframe(self, res: AlignResult, c2w: np.ndarray, ref: Reference) -> bool:
         c = self.cfg

@@ -258,7 +258,8 @@ def run_up(args) -> int:
                 "services.tracker", frontend=opts.tracker_frontend, **net("tracker"), threads=threads,
                 # a restarted tracker re-localises against its last keyframe (same world frame and scale)
                 state=str(tracker_state(out)) if mono else None, skip_behind=0 if paced else None,
-                ba_thread="off" if paced else None,  # paced: the poses of fmapping slam, run for run
+                # paced: the poses of fmapping slam, run for run
+                ba_thread="off" if paced else None, frame_pose="direct" if paced else None,
                 config=str(tracker_cfg) if tracker_cfg else None)
             procs["tracker"] = Proc("tracker", targv, out, env)
             later.append(procs["tracker"])

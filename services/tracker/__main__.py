@@ -37,6 +37,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ba-thread", default="on", choices=["on", "off"],
                    help="mono: keyframe bundle adjustment in a worker thread, merged between frames, so that a "
                         "keyframe does not hold up its pose (off: on the frame path, as fmapping slam)")
+    p.add_argument("--frame-pose", default="pnp", choices=["pnp", "direct"],
+                   help="mono: a frame's pose from its KLT-tracked landmarks (PnP), checked photometrically, the "
+                        "direct alignment only for the frames that fail that (a third less time a frame); direct: "
+                        "every frame aligned photometrically first, as fmapping slam")
     p.add_argument("--frontend", default="mono", choices=["mono", "map"],
                    help="mono: RGB-only front end from frame 0 (as fmapping slam); map: track against the "
                         "mapper's field (frames wait for the first map)")
@@ -70,7 +74,7 @@ def main(argv=None, session=None, keys=None) -> int:
                                  anchor_source=args.anchor, state_path=args.state,
                                  skip_behind=args.skip_behind, stream_idle_s=args.stream_idle,
                                  interpolate_skipped=args.interpolate_skipped == "on",
-                                 ba_thread=args.ba_thread == "on").validate()
+                                 ba_thread=args.ba_thread == "on", frame_pose=args.frame_pose).validate()
     # frames thinned evenly when the inbox is full (a long gap loses the track; evenly spread gaps do not)
     with Service("tracker", args, capacities=CAPACITIES, max_bytes=MAX_BYTES, session=session, keys=keys,
                  thin=("frames",)) as svc:

@@ -107,10 +107,16 @@ class TrackerServiceOptions:
     # keyframe no longer holds up its frame's pose. Off here (the poses then equal fmapping slam's exactly);
     # the service's CLI turns it on unless playback is paced.
     ba_thread: bool = False
+    # mono: where a frame's pose comes from first (MonoConfig.frame_pose): "pnp" fits it to the KLT-tracked landmarks
+    # and aligns photometrically only the frames that fail, a third less time a frame; None: the mono config's own
+    # ("direct", as fmapping slam). The service's CLI picks "pnp" unless playback is paced.
+    frame_pose: Optional[str] = None
 
     def validate(self) -> "TrackerServiceOptions":
         if self.frontend not in ("mono", "map"):
             raise ValueError(f"tracker frontend must be 'mono' or 'map', got {self.frontend!r}")
+        if self.frame_pose not in (None, "direct", "pnp"):
+            raise ValueError(f"tracker frame_pose must be 'direct' or 'pnp', got {self.frame_pose!r}")
         if self.skip_behind < 0 or not self.stream_idle_s >= 0:
             raise ValueError(f"skip_behind and stream_idle_s must be >= 0, got {self.skip_behind} and "
                              f"{self.stream_idle_s}")
@@ -293,6 +299,8 @@ class TrackerCore(MapFrontend, ServiceCore):
         from fmapping.tracking.mono import MonoConfig
 
         mono = dataclasses.replace(self.mono_cfg or MonoConfig(), ba_thread=o.ba_thread)
+        if o.frame_pose is not None:
+            mono = dataclasses.replace(mono, frame_pose=o.frame_pose)
         self.session = PoseSession(self.camera, self.cfg, mono, policy, anchors=self.anchors)
 
     def _on_anchor(self, p: P.Pose) -> list[Output]:

@@ -19,6 +19,10 @@ RGB-only tracking before (and independently of) the neural map:
    blurred keyframe) gets its pose from the tracked landmarks (PnP + RANSAC) and is
    aligned again from there; if that fails too, the PnP pose stands and the frame
    becomes a keyframe. Only when PnP fails as well does the frame count as lost.
+   With ``MonoConfig.frame_pose`` "pnp" the KLT tracks come first: the frame's pose is fitted to its
+   tracked landmarks (PnP from the motion model's prediction) and judged against the keyframe's
+   reference as an alignment would be (:meth:`~fmapping.tracking.direct_tracker.DirectTracker.verify`);
+   the direct alignment runs only for the frames that fail that.
 3. **Keyframes.** When the tracker asks for one, tracks with a landmark add an
    observation, tracks without one are triangulated between their first keyframe
    and the new one; then a windowed bundle adjustment (last ``window`` keyframes,

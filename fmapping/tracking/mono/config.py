@@ -79,6 +79,19 @@ class MonoConfig:
     # 10.7 -> 7.6, TUM fr1_rpy 36.4 -> 25.8, 7-Scenes dev 29.3 -> 26.6), Sim3 ATE 0.47/1.40/0.61/0.67/0.71 ->
     # 0.62/1.12/0.54/0.67/0.70 cm, TUM 3.39 -> 1.89, 7-Scenes 3.16 -> 2.81 cm (bench/results/realtime_tail/).
     klt_keyframe_fb: bool = False
+    # Where a frame's pose comes from first: "direct" (photometric alignment against the keyframe's reference,
+    # then pose_refine) | "pnp" (the KLT-tracked landmarks by PnP from the motion model's prediction, judged by
+    # the reference's photometric residual at that pose; the direct alignment only when that fails). "pnp" takes
+    # a non-keyframe 20-30 % less time (bench/mono_variants.py, same process: rooms 0 / 2 13.8 / 13.3 -> 9.7-11.1 ms,
+    # 7-Scenes dev 29.9-32.2 -> 24.3-26.0 ms) at the same Sim3 ATE over perturbed copies (better in 9 of 18 runs:
+    # 7-Scenes dev median 2.98 -> 2.94 cm, rooms 1 / 3 1.19 -> 1.07 / 0.80 -> 0.94, TUM fr1_rpy 2.09 -> 2.29), and
+    # its frame poses sit a little further from the GT relative to their keyframe (median 1.90 -> 1.92 mm, room 1
+    # 2.93 -> 3.05 mm): "direct" offline, "pnp" in the tracker service at a camera's rate (services.tracker
+    # --frame-pose; bench/results/frame_pose_pnp_2026-12-06/)
+    frame_pose: str = "direct"
+    pnp_first_gate_px: float = 8.0  # "pnp": first fit on the landmarks within this of the prediction (at 320 px)
+    pnp_first_min_share: float = 0.5  # ... and the pose kept when this share of them fits within pnp_inlier_px
+    pnp_first_passes: int = 1  # ... fitted again on those within pnp_inlier_px up to this many times
     # per-frame pose after direct alignment: "pnp" (reprojection of tracked landmarks) | "none"
     pose_refine: str = "pnp"
     # With pose_refine "pnp" the direct alignment only seeds the PnP (and gates its inliers at pnp_inlier_px), so
@@ -109,6 +122,15 @@ class MonoConfig:
     rolling_shutter: float = 0.0
 
     def validate(self) -> None:
+        if self.frame_pose not in ("direct", "pnp"):
+            raise ValueError(f"mono.frame_pose must be 'direct' or 'pnp', got {self.frame_pose!r}")
+        if self.frame_pose == "pnp" and self.rolling_shutter:
+            raise ValueError("mono.frame_pose 'pnp' needs a global shutter (mono.rolling_shutter 0): the tracks are "
+                             "unrolled with the rotation the direct alignment measures")
+        if not (self.pnp_first_gate_px > 0 and 0.0 <= self.pnp_first_min_share <= 1.0 and self.pnp_first_passes >= 1):
+            raise ValueError(f"mono.pnp_first_gate_px must be > 0, mono.pnp_first_min_share in [0, 1] and "
+                             f"mono.pnp_first_passes >= 1, got "
+                             f"{self.pnp_first_gate_px}, {self.pnp_first_min_share} and {self.pnp_first_passes}")
         if self.loop_ba_defer_frames < 0 or not 0.0 <= self.ba_defer_min_visible <= 1.0:
             raise ValueError(f"mono.loop_ba_defer_frames must be >= 0 and mono.ba_defer_min_visible in [0, 1], got "
                              f"{self.loop_ba_defer_frames} and {self.ba_defer_min_visible}")

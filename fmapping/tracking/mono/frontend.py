@@ -64,6 +64,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         self._lost_run = 0
         self._deferred = 0  # frames in a row whose keyframe was put off (a loop's BA in the worker)
         self.keyframes_deferred = 0  # such frames in all (MonoConfig.loop_ba_defer_frames)
+        self.frames_pnp = 0  # frames posed from their tracked landmarks alone (MonoConfig.frame_pose "pnp")
         self.reinits: list = []
         self.dense_checks: list = []  # per keyframe with extra depth: did it agree with the landmarks?
         self._first_index = 0  # the bootstrap's first frame
@@ -95,14 +96,26 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
             self.settle_scale(f"no tracked frame with an anchor pose in the first {2 * self.cfg.late_anchor_frames}")
         self._merge_ba(wait=False)  # a bundle adjustment finished since the last frame: take it first
         gray = to_u8(rgb)
-        res = self.tracker.track(rgb)
-        if self.cfg.rolling_shutter and not res.lost:
-            hist = self.tracker.motion_history  # [previous frame, this frame]
-            if len(hist) == 2:
-                self._step = rotation_step(hist[0], hist[1])
-        self._klt(gray)
-        if res.lost and self.cfg.pnp_recovery:
-            res = self._recover(rgb, res)
+        quick = None
+        if self.cfg.frame_pose == "pnp":
+            t0 = time.perf_counter()
+            self._klt(gray)
+            quick = self._pose_from_tracks(rgb)
+            if quick is not None:
+                quick.ms += (time.perf_counter() - t0) * 1000.0
+                self.frames_pnp += 1
+        if quick is not None:
+            res = quick
+        else:
+            res = self.tracker.track(rgb)
+            if self.cfg.rolling_shutter and not res.lost:
+                hist = self.tracker.motion_history  # [previous frame, this frame]
+                if len(hist) == 2:
+                    self._step = rotation_step(hist[0], hist[1])
+            if self.cfg.frame_pose != "pnp":
+                self._klt(gray)
+            if res.lost and self.cfg.pnp_recovery:
+                res = self._recover(rgb, res)
         if res.lost:
             self._lost_run += 1
             if self._lost_run >= self.cfg.reinit_after:
@@ -112,7 +125,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
                 self._lost_run = 0
             return res
         self._lost_run = 0
-        if self.cfg.pose_refine == "pnp":
+        if self.cfg.pose_refine == "pnp" and quick is None:
             t0 = time.perf_counter()
             refined = self._pnp(res.c2w)
             if refined is not None:
@@ -251,6 +264,43 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
             return None
         return orthonormalize(inv_pose(found[0]))
 
+    def _pose_from_tracks(self, rgb: np.ndarray) -> Optional[TrackResult]:
+        """``MonoConfig.frame_pose`` "pnp": the frame's pose from its KLT-tracked landmarks, refined by PnP from
+        the motion model's prediction (inliers within ``pnp_first_gate_px``, then again within
+        ``pnp_inlier_px`` of the first fit), and judged photometrically against the reference as the direct
+        alignment's own result would be (:meth:`DirectTracker.verify`). None, and the direct alignment runs,
+        when fewer than ``pnp_min_points`` or than ``pnp_first_min_share`` of the tracked landmarks fit, or
+        when the reference's points do not agree with the pose."""
+        found = self.store.tracked_landmarks()
+        if found is None:
+            return None
+        x, uv = found
+        c = self.cfg
+        need = max(c.pnp_min_points, c.pnp_first_min_share * len(x))
+        w2c = inv_pose(self.tracker.predict())
+        last = None
+        for gate in (at_width(c.pnp_first_gate_px, self.camera.width),) + (c.pnp_inlier_px,) * c.pnp_first_passes:
+            inl = self._reprojects_within(x, uv, w2c, gate)
+            if inl.sum() < need:
+                return None
+            if last is not None and np.array_equal(inl, last):
+                break  # the same inliers: the same fit
+            w2c = refine_pnp(self.camera, x[inl], uv[inl], w2c)
+            if w2c is None:
+                return None
+            last = inl
+        if self._reprojects_within(x, uv, w2c, c.pnp_inlier_px).sum() < need:
+            return None
+        return self.tracker.verify(rgb, orthonormalize(inv_pose(w2c)))
+
+    def _reprojects_within(self, x: np.ndarray, uv: np.ndarray, w2c: np.ndarray, px: float) -> np.ndarray:
+        """Which world points ``x`` (N, 3) project within ``px`` pixels of ``uv`` (N, 2) at pose ``w2c``."""
+        y = x @ w2c[:3, :3].T + w2c[:3, 3]
+        z = np.where(y[:, 2] > 1e-6, y[:, 2], 1e-6)
+        cam = self.camera
+        proj = np.stack([cam.fx * y[:, 0] / z + cam.cx, cam.fy * y[:, 1] / z + cam.cy], -1)
+        return (y[:, 2] > 1e-3) & (np.linalg.norm(proj - uv, axis=1) < px)
+
     def _pnp(self, c2w: np.ndarray) -> Optional[np.ndarray]:
         """Refine a pose on the reprojection error of the tracked landmarks (inliers of the given pose)."""
         found = self.store.tracked_landmarks()
@@ -258,14 +308,10 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
             return None
         x, uv = found
         w2c = inv_pose(c2w)
-        y = x @ w2c[:3, :3].T + w2c[:3, 3]
-        z = np.where(y[:, 2] > 1e-6, y[:, 2], 1e-6)
-        cam = self.camera
-        proj = np.stack([cam.fx * y[:, 0] / z + cam.cx, cam.fy * y[:, 1] / z + cam.cy], -1)
-        inl = (y[:, 2] > 1e-3) & (np.linalg.norm(proj - uv, axis=1) < self.cfg.pnp_inlier_px)
+        inl = self._reprojects_within(x, uv, w2c, self.cfg.pnp_inlier_px)
         if inl.sum() < self.cfg.pnp_min_points:
             return None
-        refined = refine_pnp(cam, x[inl], uv[inl], w2c)
+        refined = refine_pnp(self.camera, x[inl], uv[inl], w2c)
         if refined is None:
             return None
         out = orthonormalize(inv_pose(refined))
