@@ -258,6 +258,7 @@ def test_the_tracker_service_at_a_cameras_rate_poses_frames_from_their_tracks(ro
     assert fe.cfg.frame_pose == "pnp" and sorted(got) == list(range(len(ds)))
     tracked = core.counters.get("frames_tracked")
     assert fe.frames_pnp >= 0.7 * tracked, (fe.frames_pnp, tracked)
+    assert core.counters.get("frames_posed_by_pnp") == fe.frames_pnp  # in the service's status
     ks = sorted(k for k, m in got.items() if m.quality > 0)
     assert ate(np.stack([got[k].c2w for k in ks]), np.stack([ds[k].c2w for k in ks]), "sim3")["rmse_m"] < 0.01
 

@@ -431,6 +431,7 @@ class TrackerCore(MapFrontend, ServiceCore):
             self._save_state()
             self.counters.set("loop_closures", len(sess.frontend.loops))
             self.counters.set("keyframes_deferred", sess.frontend.keyframes_deferred)
+            self.counters.set("frames_posed_by_pnp", sess.frontend.frames_pnp)  # (--frame-pose pnp)
             self.counters.set("frames_interpolated", sess.interpolated)
         self.counters.set("waiting_frames", len(self.waiting))
         return out
