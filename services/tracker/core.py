@@ -108,7 +108,7 @@ class TrackerServiceOptions:
     # the service's CLI turns it on unless playback is paced.
     ba_thread: bool = False
     # mono: where a frame's pose comes from first (MonoConfig.frame_pose): "pnp" fits it to the KLT-tracked landmarks
-    # and aligns photometrically only the frames that fail, a third less time a frame; None: the mono config's own
+    # and aligns photometrically only the frames that fail, 20-30 % less time a frame; None: the mono config's own
     # ("direct", as fmapping slam). The service's CLI picks "pnp" unless playback is paced.
     frame_pose: Optional[str] = None
 
