@@ -39,7 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "keyframe does not hold up its pose (off: on the frame path, as fmapping slam)")
     p.add_argument("--frame-pose", default="pnp", choices=["pnp", "direct"],
                    help="mono: a frame's pose from its KLT-tracked landmarks (PnP), checked photometrically, the "
-                        "direct alignment only for the frames that fail that (20-30 % less time a frame); direct: "
+                        "direct alignment only for the frames that fail that (20-30 %% less time a frame); direct: "
                         "every frame aligned photometrically first, as fmapping slam")
     p.add_argument("--frontend", default="mono", choices=["mono", "map"],
                    help="mono: RGB-only front end from frame 0 (as fmapping slam); map: track against the "
