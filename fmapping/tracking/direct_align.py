@@ -426,13 +426,19 @@ def align(ref: Reference, cur: Pyramid, t_init: np.ndarray, cfg: AlignConfig,
     r, _, valid = warp_residuals(cur.levels[0], cur.cameras[0], ref.points, ref.intensities[0], t, ab,
                                  with_jacobian=False,
                                  mask=cur.masks[0] if cur.masks is not None else None)
-    n = len(ref.points)
+    return _result(ref, t, ab, r, valid, cfg, total_it, h6)
+
+
+def _result(ref: Reference, t: np.ndarray, ab: np.ndarray, r: np.ndarray, valid: np.ndarray, cfg: AlignConfig,
+            iterations: int, hessian: Optional[np.ndarray] = None) -> AlignResult:
+    """The :class:`AlignResult` of pose ``t`` and brightness ``ab`` from the full-resolution residuals ``r`` of
+    the reference's points that land in the image (``valid``)."""
     ok = len(r) >= cfg.min_valid and bool(np.all(np.isfinite(t)))
     rmse = float(np.sqrt(np.mean(r * r))) if len(r) else float("inf")
     inl = float(np.mean(np.abs(r) < cfg.inlier_threshold)) if len(r) else 0.0
     ref_std = float(np.std(ref.intensities[0][valid])) if len(r) else 0.0
-    t = orthonormalize(t)
-    return AlignResult(t, ab, rmse, inl, float(valid.sum()) / max(n, 1), total_it, ok, ref_std=ref_std, hessian=h6)
+    return AlignResult(orthonormalize(t), ab, rmse, inl, float(valid.sum()) / max(len(ref.points), 1), iterations,
+                       ok, ref_std=ref_std, hessian=hessian)
 
 
 def evaluate_pose(ref: Reference, gray: np.ndarray, cam: PinholeCamera, t_cr: np.ndarray, cfg: AlignConfig,
@@ -441,15 +447,14 @@ def evaluate_pose(ref: Reference, gray: np.ndarray, cam: PinholeCamera, t_cr: np
     """The measures :func:`align` reports (residual, inlier and visible ratios), for the pose ``t_cr``
     found elsewhere (reference -> current camera), which is not moved: only the brightness gain / offset
     are fitted, by ``affine_steps`` robust Gauss-Newton steps from ``affine_init``. ``gray`` is the
-    current frame's full-size grey image (:func:`to_gray`, blurred as the pyramid's level 0 would be),
-    ``mask`` its valid pixels. One warp of the reference's points: a small part of an alignment's cost."""
+    current frame's full-size grey image (:func:`to_gray`; ``cfg.blur`` is applied here, as to a pyramid's
+    level 0), ``mask`` its valid pixels. One warp of the reference's points: a small part of an alignment's cost."""
     if cfg.blur > 0:
         gray = cv2.GaussianBlur(gray, (0, 0), cfg.blur)
     t = np.asarray(t_cr, np.float64)
     ab = np.zeros(2) if affine_init is None else np.array(affine_init, np.float64)
-    r, jac, valid = warp_residuals(gray[..., None], cam, ref.points, ref.intensities[0], t, ab, mask=mask,
-                                   with_jacobian=False)
-    n = len(ref.points)
+    r, _, valid = warp_residuals(gray[..., None], cam, ref.points, ref.intensities[0], t, ab, mask=mask,
+                                 with_jacobian=False)
     if cfg.affine and len(r) >= cfg.min_valid:
         iref = ref.intensities[0][valid].astype(np.float64)
         sampled = r + math.exp(ab[0]) * iref + ab[1]
@@ -462,8 +467,4 @@ def evaluate_pose(ref: Reference, gray: np.ndarray, cam: PinholeCamera, t_cr: np
             step = -np.linalg.solve(jw.T @ j + np.eye(2) * cfg.affine_prior, jw.T @ r + cfg.affine_prior * ab)
             ab = np.clip(ab + step, -np.asarray(cfg.affine_bound), np.asarray(cfg.affine_bound))
             r = sampled - (math.exp(ab[0]) * iref + ab[1])
-    ok = len(r) >= cfg.min_valid and bool(np.all(np.isfinite(t)))
-    rmse = float(np.sqrt(np.mean(r * r))) if len(r) else float("inf")
-    inl = float(np.mean(np.abs(r) < cfg.inlier_threshold)) if len(r) else 0.0
-    ref_std = float(np.std(ref.intensities[0][valid])) if len(r) else 0.0
-    return AlignResult(orthonormalize(t), ab, rmse, inl, float(valid.sum()) / max(n, 1), 0, ok, ref_std=ref_std)
+    return _result(ref, t, ab, r, valid, cfg, 0)
