@@ -235,6 +235,11 @@ class DirectTracker:
             self._losses += 1
             return TrackResult(pred, True, False, False, res.rmse, res.inlier_ratio, res.visible_ratio,
                                res.iterations, ms, ref.frame_index, reason)
+        return self._accept(res, c2w, ref, relocalised, ms)
+
+    def _accept(self, res: AlignResult, c2w: np.ndarray, ref: Reference, relocalised: bool, ms: float) -> TrackResult:
+        """Take ``c2w`` (judged by ``res`` against ``ref``) as the frame's tracked pose: the motion model and the
+        brightness move on, and the keyframe decision is made."""
         self._losses = 0
         self._last_affine = res.affine
         self._history = (self._history + [c2w])[-2:]
@@ -256,11 +261,7 @@ class DirectTracker:
                             self._last_affine, mask=image_valid_mask(rgb))
         if self._check(res, c2w, pred, ref):
             return None
-        self._losses = 0
-        self._last_affine = res.affine
-        self._history = (self._history + [c2w])[-2:]
-        return TrackResult(c2w, False, False, self._need_keyframe(res, c2w, ref), res.rmse, res.inlier_ratio,
-                           res.visible_ratio, 0, (time.perf_counter() - t0) * 1000.0, ref.frame_index)
+        return self._accept(res, c2w, ref, False, (time.perf_counter() - t0) * 1000.0)
 
     def _need_keyframe(self, res: AlignResult, c2w: np.ndarray, ref: Reference) -> bool:
         c = self.cfg

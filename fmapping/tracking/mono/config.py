@@ -91,7 +91,6 @@ class MonoConfig:
     frame_pose: str = "direct"
     pnp_first_gate_px: float = 8.0  # "pnp": first fit on the landmarks within this of the prediction (at 320 px)
     pnp_first_min_share: float = 0.5  # ... and the pose kept when this share of them fits within pnp_inlier_px
-    pnp_first_passes: int = 1  # ... fitted again on those within pnp_inlier_px up to this many times
     # per-frame pose after direct alignment: "pnp" (reprojection of tracked landmarks) | "none"
     pose_refine: str = "pnp"
     # With pose_refine "pnp" the direct alignment only seeds the PnP (and gates its inliers at pnp_inlier_px), so
@@ -127,10 +126,9 @@ class MonoConfig:
         if self.frame_pose == "pnp" and self.rolling_shutter:
             raise ValueError("mono.frame_pose 'pnp' needs a global shutter (mono.rolling_shutter 0): the tracks are "
                              "unrolled with the rotation the direct alignment measures")
-        if not (self.pnp_first_gate_px > 0 and 0.0 <= self.pnp_first_min_share <= 1.0 and self.pnp_first_passes >= 1):
-            raise ValueError(f"mono.pnp_first_gate_px must be > 0, mono.pnp_first_min_share in [0, 1] and "
-                             f"mono.pnp_first_passes >= 1, got "
-                             f"{self.pnp_first_gate_px}, {self.pnp_first_min_share} and {self.pnp_first_passes}")
+        if not (self.pnp_first_gate_px > 0 and 0.0 <= self.pnp_first_min_share <= 1.0):
+            raise ValueError(f"mono.pnp_first_gate_px must be > 0 and mono.pnp_first_min_share in [0, 1], got "
+                             f"{self.pnp_first_gate_px} and {self.pnp_first_min_share}")
         if self.loop_ba_defer_frames < 0 or not 0.0 <= self.ba_defer_min_visible <= 1.0:
             raise ValueError(f"mono.loop_ba_defer_frames must be >= 0 and mono.ba_defer_min_visible in [0, 1], got "
                              f"{self.loop_ba_defer_frames} and {self.ba_defer_min_visible}")

@@ -277,18 +277,16 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         x, uv = found
         c = self.cfg
         need = max(c.pnp_min_points, c.pnp_first_min_share * len(x))
-        w2c = inv_pose(self.tracker.predict())
-        last = None
-        for gate in (at_width(c.pnp_first_gate_px, self.camera.width),) + (c.pnp_inlier_px,) * c.pnp_first_passes:
+        w2c, last = inv_pose(self.tracker.predict()), None
+        for gate in (at_width(c.pnp_first_gate_px, self.camera.width), c.pnp_inlier_px):
             inl = self._reprojects_within(x, uv, w2c, gate)
             if inl.sum() < need:
                 return None
             if last is not None and np.array_equal(inl, last):
                 break  # the same inliers: the same fit
-            w2c = refine_pnp(self.camera, x[inl], uv[inl], w2c)
+            w2c, last = refine_pnp(self.camera, x[inl], uv[inl], w2c), inl
             if w2c is None:
                 return None
-            last = inl
         if self._reprojects_within(x, uv, w2c, c.pnp_inlier_px).sum() < need:
             return None
         return self.tracker.verify(rgb, orthonormalize(inv_pose(w2c)))
