@@ -512,6 +512,67 @@ def test_two_view_whitened_by_the_tracks_covariances_undoes_the_edge_lag(seed=0)
     assert two_view_init(cam, ua, ub, 1.0, 0.5, cov=cov, starts=8) is None
 
 
+def test_whitened_epipolar_jacobian_matches_finite_differences():
+    """The exact derivatives of the whitened errors (rotation increment, two tangent steps of the unit
+    translation) against central differences of the errors themselves, at poses away from the truth."""
+    import torch
+
+    from fmapping.geometry import so3_exp
+    from fmapping.tracking.whitened_two_view import _step, bearings, normalised_cov, whitened_residuals
+
+    cam, ua, ub, cov, rot, t = _edge_lag_views(0.1, 1)
+    xa, xb, cov_n = bearings(cam, ua), bearings(cam, ub), normalised_cov(cam, cov)
+    rng = np.random.default_rng(5)
+    rots = so3_exp(torch.from_numpy(rng.normal(0, 0.2, (4, 3)))).numpy() @ rot
+    ts = t + rng.normal(0, 0.1, (4, 3))
+    ts /= np.linalg.norm(ts, axis=1, keepdims=True)
+    _, jac = whitened_residuals(rots, ts, xa, xb, cov_n)
+    h = 1e-6
+    for i in range(5):
+        d = np.zeros((4, 5))
+        d[:, i] = h
+        plus = whitened_residuals(*_step(rots, ts, d), xa, xb, cov_n, jacobian=False)[0]
+        minus = whitened_residuals(*_step(rots, ts, -d), xa, xb, cov_n, jacobian=False)[0]
+        np.testing.assert_allclose(jac[..., i], (plus - minus) / (2 * h), rtol=1e-5, atol=1e-5 * np.abs(jac).max())
+
+
+def test_whitened_robust_fit_reaches_the_minimum_a_generic_solver_finds():
+    """The batched Levenberg-Marquardt of the whitened two-view fit against scipy's least_squares (Huber loss,
+    numerical Jacobian, a Rodrigues vector and a free 3-vector for the translation) from the same starts: the
+    same minimum, the same Huber cost. And the starts are independent: fitted together or one by one."""
+    import cv2
+    from scipy.optimize import least_squares
+
+    from fmapping.tracking.whitened_two_view import (
+        bearings, epipolar_whitened_px, huber_cost, normalised_cov, robust_fit,
+    )
+
+    cam, ua, ub, cov, rot, t = _edge_lag_views(0.1, 0)
+    xa, xb, cov_n = bearings(cam, ua), bearings(cam, ub), normalised_cov(cam, cov)
+    r0 = cv2.Rodrigues(np.array([0.02, -0.03, 0.01]))[0] @ rot
+    t_starts = np.stack([t / np.linalg.norm(t), np.array([0.3, 0.1, 0.95]), np.array([-0.9, 0.3, 0.3])])
+    t_starts /= np.linalg.norm(t_starts, axis=1, keepdims=True)
+    rots, ts, costs = robust_fit(np.repeat(r0[None], 3, 0), t_starts, xa, xb, cov_n, 1.0, 500, ftol=1e-14, xtol=1e-14)
+
+    def pose(x):
+        return cv2.Rodrigues(x[:3])[0] @ r0, x[3:] / np.linalg.norm(x[3:])
+
+    for j, t0 in enumerate(t_starts):
+        ref = least_squares(lambda x: epipolar_whitened_px(cam, *pose(x), ua, ub, cov), np.r_[np.zeros(3), t0],
+                            loss="huber", f_scale=1.0, ftol=1e-14, xtol=1e-14, gtol=1e-14, max_nfev=2000)
+        r_ref, t_ref = pose(ref.x)
+        np.testing.assert_allclose(costs[j], ref.cost, rtol=1e-7)
+        np.testing.assert_allclose(rots[j], r_ref, atol=1e-6)
+        np.testing.assert_allclose(ts[j] * np.sign(ts[j] @ t_ref), t_ref, atol=1e-6)
+        np.testing.assert_allclose(huber_cost(epipolar_whitened_px(cam, rots[j], ts[j], ua, ub, cov)[None], 1.0),
+                                   [costs[j]], rtol=1e-12)
+        alone = robust_fit(r0[None], t0[None], xa, xb, cov_n, 1.0, 500, ftol=1e-14, xtol=1e-14)
+        np.testing.assert_allclose(alone[1][0], ts[j], atol=1e-9)
+    # the start at the truth ends at the truth's minimum, within the edge lag's bias
+    drot = math.degrees(math.acos(np.clip((np.trace(rot.T @ rots[0]) - 1) / 2, -1, 1)))
+    assert drot < 1.0 and math.degrees(math.acos(abs(ts[0] @ t) / np.linalg.norm(t))) < 5.0
+
+
 def test_triangulate_with_known_poses_and_rejections():
     from fmapping.tracking.features import triangulate
 

@@ -7,7 +7,9 @@ any. This module supplies it with standard two-view geometry (OpenCV):
   with a forward-backward check, compensating exposure changes: :func:`klt_track_gain`)
   follow points from a keyframe to later frames;
 * :func:`two_view_init` recovers the relative pose of two views from the tracks
-  (essential matrix, RANSAC) up to scale and triangulates the inliers;
+  (essential matrix, RANSAC) up to scale and triangulates the inliers; with the tracks'
+  covariances it refits the pose on the whitened epipolar error
+  (:mod:`fmapping.tracking.whitened_two_view`);
 * :func:`triangulate` gives world points of tracks between two views with known
   poses, rejecting low parallax and large reprojection errors;
 * :func:`two_view_known_baseline` recovers the relative rotation when the baseline
@@ -27,7 +29,7 @@ import cv2
 import numpy as np
 
 from fmapping.camera import PinholeCamera
-from fmapping.geometry import line_angle_deg
+from fmapping.tracking.whitened_two_view import bearings, epipolar_whitened_px, refine_two_view_whitened
 
 
 @dataclass
@@ -377,95 +379,6 @@ def corner_covariance(gray: np.ndarray, uv: np.ndarray, cfg: KltConfig, cap: flo
     return np.einsum("nij,nj,nkj->nik", vec, var, vec)
 
 
-def epipolar_whitened_px(camera: PinholeCamera, rot_ab: np.ndarray, t_ab: np.ndarray, uv_a: np.ndarray,
-                         uv_b: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """Signed epipolar error (N,) of pixel pairs under ``x_b = rot_ab x_a + t_ab``, each divided by its standard
-    deviation under the pairs' position covariances ``cov`` (N, 2, 2), the same for both pixels (first order:
-    the Sampson error with anisotropic pixel noise; with the identity it is the Sampson distance in pixels)."""
-    return _whitened_epipolar(_essential(rot_ab, t_ab), _bearings(camera, uv_a), _bearings(camera, uv_b),
-                              _normalised_cov(camera, cov))
-
-
-def _essential(rot_ab: np.ndarray, t_ab: np.ndarray) -> np.ndarray:
-    t = np.asarray(t_ab, np.float64).reshape(3)
-    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]]) @ np.asarray(rot_ab, np.float64)
-
-
-def _normalised_cov(camera: PinholeCamera, cov: np.ndarray) -> np.ndarray:
-    """Pixel covariances (N, 2, 2) in normalised image coordinates (scaled by 1 / f per axis)."""
-    inv_f = np.array([1.0 / camera.fx, 1.0 / camera.fy])
-    return np.asarray(cov, np.float64) * inv_f[:, None] * inv_f[None, :]
-
-
-def _whitened_epipolar(e_mat: np.ndarray, xa: np.ndarray, xb: np.ndarray, cov_n: np.ndarray) -> np.ndarray:
-    """:func:`epipolar_whitened_px` on bearings ``xa``, ``xb`` (N, 3) with covariances in normalised units (the
-    ratio is the same in pixels): ``e = xb^T E xa`` over its first-order standard deviation."""
-    exa, etxb = xa @ e_mat.T, xb @ e_mat
-    ga, gb = etxb[:, :2], exa[:, :2]  # d e / d xa, d e / d xb (their image-plane parts)
-    var = ((ga[:, :, None] * cov_n).sum(1) * ga).sum(1) + ((gb[:, :, None] * cov_n).sum(1) * gb).sum(1)
-    return (xb * exa).sum(1) / np.sqrt(np.maximum(var, 1e-30))
-
-
-def hemisphere_directions(n: int) -> np.ndarray:
-    """``n`` unit vectors spread evenly over the half sphere z >= 0 (a Fibonacci lattice)."""
-    i = np.arange(n) + 0.5
-    polar = np.arccos(1.0 - i / n)
-    azimuth = np.pi * (1.0 + 5 ** 0.5) * i
-    return np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], -1)
-
-
-def refine_two_view_whitened(camera: PinholeCamera, rot_ab: np.ndarray, t_ab: np.ndarray, uv_a: np.ndarray,
-                             uv_b: np.ndarray, cov: np.ndarray, inlier_px: float = 1.0, starts: int = 0,
-                             distinct_deg: float = 15.0, margin: float = 0.1) -> Optional[tuple]:
-    """Relative rotation and unit translation (a -> b) fitted to every pair by robust least squares (Huber at
-    ``inlier_px``) on :func:`epipolar_whitened_px`, then again on the pairs within ``inlier_px``. Returns
-    ``(rot_ab, t_ab, inlier mask)``, or None when fewer than 20 pairs fit or the fit is ambiguous.
-
-    With ``starts`` > 0 the fit also starts from that many translation directions spread over the half sphere
-    (the rotation from ``rot_ab``) and keeps the lowest cost. On a nearly planar scene seen over a short
-    baseline the cost has several minima tens of degrees of translation apart, and RANSAC's isotropic start can
-    sit in a wrong one; when a minimum more than ``distinct_deg`` away from the best costs less than
-    ``1 + margin`` times as much, the pairs cannot tell the two apart yet: None (wait for more baseline)."""
-    from scipy.optimize import least_squares
-
-    r0 = np.asarray(rot_ab, np.float64)
-    uv_a = np.asarray(uv_a, np.float64).reshape(-1, 2)
-    uv_b = np.asarray(uv_b, np.float64).reshape(-1, 2)
-    t0 = np.asarray(t_ab, np.float64).reshape(3) / max(np.linalg.norm(t_ab), 1e-12)
-    # bearings and normalised covariances once: the error is evaluated thousands of times
-    xa, xb, cov_n = _bearings(camera, uv_a), _bearings(camera, uv_b), _normalised_cov(camera, cov)
-
-    def pose(x):
-        return cv2.Rodrigues(x[:3])[0] @ r0, x[3:] / max(np.linalg.norm(x[3:]), 1e-12)
-
-    def residuals(p, m):
-        return _whitened_epipolar(_essential(*pose(p)), xa[m], xb[m], cov_n[m])
-
-    def fit(x, m, nfev):
-        return least_squares(residuals, x, loss="huber", f_scale=inlier_px, max_nfev=nfev, args=(m,))
-
-    def distinct(a, b) -> bool:
-        return line_angle_deg(pose(a.x)[1], pose(b.x)[1]) > distinct_deg
-
-    every = np.ones(len(uv_a), bool)
-    found = [fit(np.r_[np.zeros(3), t0], every, 200)]
-    found += [fit(np.r_[np.zeros(3), d], every, 60) for d in (hemisphere_directions(starts) if starts > 0 else [])]
-    best = min(found, key=lambda sol: sol.cost)
-    apart = [sol.cost for sol in found if distinct(sol, best)]
-    if apart and min(apart) < (1.0 + margin) * best.cost:
-        return None
-    x = best.x
-    inl = np.abs(residuals(x, every)) < inlier_px
-    if inl.sum() < 20:
-        return None
-    x = fit(x, inl, 200).x  # again on its inliers
-    inl = np.abs(residuals(x, every)) < inlier_px
-    if inl.sum() < 20:
-        return None
-    rot, t = pose(x)
-    return rot, t, inl
-
-
 def two_view_init(camera: PinholeCamera, uv_a: np.ndarray, uv_b: np.ndarray, ransac_px: float = 1.0,
                   min_parallax_deg: float = 1.0, refine: bool = True,
                   cov: Optional[np.ndarray] = None, starts: int = 0) -> Optional[TwoViewResult]:
@@ -545,12 +458,6 @@ def two_view_init(camera: PinholeCamera, uv_a: np.ndarray, uv_b: np.ndarray, ran
     return TwoViewResult(c2w_b, inl, pts, valid, med)
 
 
-def _bearings(camera: PinholeCamera, uv: np.ndarray) -> np.ndarray:
-    """Pixels (N, 2) -> z-normalised camera rays (N, 3) (x/z, y/z, 1)."""
-    uv = np.asarray(uv, np.float64).reshape(-1, 2)
-    return np.stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy, np.ones(len(uv))], -1)
-
-
 def sampson_px(camera: PinholeCamera, rot_ab: np.ndarray, centre_b_in_a: np.ndarray, uv_a: np.ndarray,
                uv_b: np.ndarray) -> np.ndarray:
     """Signed Sampson distance (pixels, in the geometric mean focal length) of pixel pairs under the
@@ -561,7 +468,7 @@ def sampson_px(camera: PinholeCamera, rot_ab: np.ndarray, centre_b_in_a: np.ndar
     c = np.asarray(centre_b_in_a, np.float64)
     cx = np.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]])
     e = np.asarray(rot_ab, np.float64) @ cx
-    xa, xb = _bearings(camera, uv_a), _bearings(camera, uv_b)
+    xa, xb = bearings(camera, uv_a), bearings(camera, uv_b)
     exa = xa @ e.T
     etxb = xb @ e
     num = (xb * exa).sum(1)
@@ -589,8 +496,8 @@ def two_view_known_baseline(camera: PinholeCamera, uv_a: np.ndarray, uv_b: np.nd
     if len(uv_a) < 10 or len(uv_a) != len(uv_b):
         return None
     if rot_init is None:
-        fa = _bearings(camera, uv_a)
-        fb = _bearings(camera, uv_b)
+        fa = bearings(camera, uv_a)
+        fb = bearings(camera, uv_b)
         fa /= np.linalg.norm(fa, axis=1, keepdims=True)
         fb /= np.linalg.norm(fb, axis=1, keepdims=True)
         u, _, vt = np.linalg.svd(fb.T @ fa)  # R fa ~ fb
