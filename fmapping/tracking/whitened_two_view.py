@@ -94,12 +94,11 @@ def whitened_residuals(rot: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.nd
     return r, jac
 
 
-def huber_cost(r: np.ndarray, k: float, weight: Optional[np.ndarray] = None) -> np.ndarray:
+def huber_cost(r: np.ndarray, k: float) -> np.ndarray:
     """Huber cost (S,) of errors ``r`` (S, N) at threshold ``k``: ``r^2 / 2`` within it, ``k |r| - k^2 / 2``
-    beyond; ``weight`` (N,) of 0 / 1 leaves pairs out."""
+    beyond."""
     a = np.abs(r)
-    c = np.where(a <= k, 0.5 * r * r, k * a - 0.5 * k * k)
-    return (c if weight is None else c * weight).sum(-1)
+    return np.where(a <= k, 0.5 * r * r, k * a - 0.5 * k * k).sum(-1)
 
 
 def _step(rot: np.ndarray, t: np.ndarray, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -109,21 +108,17 @@ def _step(rot: np.ndarray, t: np.ndarray, delta: np.ndarray) -> tuple[np.ndarray
     return r_new, t_new / np.linalg.norm(t_new, axis=1, keepdims=True)
 
 
-def _normal_equations(r: np.ndarray, jac: np.ndarray, k: float, weight: Optional[np.ndarray]
-                      ) -> tuple[np.ndarray, np.ndarray]:
+def _normal_equations(r: np.ndarray, jac: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Newton normal equations (S, 5, 5), (S, 5) of the Huber cost at errors ``r`` (S, N) with Jacobians
     ``jac`` (S, N, 5): the errors weighted 1 within ``k`` and ``k / |r|`` beyond (iteratively reweighted)."""
     a = np.abs(r)
     wt = np.where(a <= k, 1.0, k / np.maximum(a, 1e-300))
-    if weight is not None:
-        wt = wt * weight
     jw_t = (jac * wt[..., None]).transpose(0, 2, 1)
     return jw_t @ jac, (jw_t @ r[..., None])[..., 0]
 
 
 def robust_fit(rot: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, cov_n: np.ndarray, k: float,
-               max_iters, weight: Optional[np.ndarray] = None, ftol: float = 1e-8, xtol: float = 1e-8
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+               max_iters, ftol: float = 1e-8, xtol: float = 1e-8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Levenberg-Marquardt on the Huber cost (threshold ``k``) of :func:`whitened_residuals`, from S starts
     ``rot`` (S, 3, 3), ``t`` (S, 3) at once; start ``j`` stops after ``max_iters[j]`` cost evaluations (an int: the
     same for all) or when a step lowers its cost by less than ``ftol`` of it or moves it by less than ``xtol``.
@@ -134,8 +129,8 @@ def robust_fit(rot: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, c
     n_s = len(rot)
     caps = np.broadcast_to(np.asarray(max_iters), (n_s,))
     r, jac = whitened_residuals(rot, t, xa, xb, cov_n)
-    cost = huber_cost(r, k, weight)
-    hess, grad = _normal_equations(r, jac, k, weight)
+    cost = huber_cost(r, k)
+    hess, grad = _normal_equations(r, jac, k)
     lam = np.full(n_s, 1e-3)
     evals = np.ones(n_s, int)
     active = evals < caps
@@ -146,13 +141,13 @@ def robust_fit(rot: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, c
         delta = -np.linalg.solve(h + lam[idx, None, None] * (diag[:, :, None] * np.eye(5)), grad[idx, :, None])[..., 0]
         rot_n, t_n = _step(rot[idx], t[idx], delta)
         r_n, jac_n = whitened_residuals(rot_n, t_n, xa, xb, cov_n)
-        cost_n = huber_cost(r_n, k, weight)
+        cost_n = huber_cost(r_n, k)
         evals[idx] += 1
         better = cost_n < cost[idx]
         small = (cost[idx] - cost_n < ftol * cost[idx]) | (np.linalg.norm(delta, axis=1) < xtol)
         moved = idx[better]
         rot[moved], t[moved], cost[moved] = rot_n[better], t_n[better], cost_n[better]
-        hess[moved], grad[moved] = _normal_equations(r_n[better], jac_n[better], k, weight)
+        hess[moved], grad[moved] = _normal_equations(r_n[better], jac_n[better], k)
         lam[idx] = np.where(better, lam[idx] * 0.1, lam[idx] * 10.0)
         active[idx] = ~(better & small) & (evals[idx] < caps[idx]) & (lam[idx] < 1e12)
     return rot, t, cost
@@ -199,7 +194,7 @@ def refine_two_view_whitened(camera: PinholeCamera, rot_ab: np.ndarray, t_ab: np
     inl = np.abs(whitened_residuals(rot, t, xa, xb, cov_n, jacobian=False)[0][0]) < inlier_px
     if inl.sum() < 20:
         return None
-    rot, t, _ = robust_fit(rot, t, xa, xb, cov_n, inlier_px, 200, weight=inl.astype(np.float64))  # on its inliers
+    rot, t, _ = robust_fit(rot, t, xa[inl], xb[inl], cov_n[inl], inlier_px, 200)  # again on its inliers
     inl = np.abs(whitened_residuals(rot, t, xa, xb, cov_n, jacobian=False)[0][0]) < inlier_px
     if inl.sum() < 20:
         return None
