@@ -271,14 +271,25 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         alignment's own result would be (:meth:`DirectTracker.verify`). None, and the direct alignment runs,
         when fewer than ``pnp_min_points`` or than ``pnp_first_min_share`` of the tracked landmarks fit, or
         when the reference's points do not agree with the pose."""
+        c = self.cfg
+        w2c = self._fit_to_tracks(inv_pose(self.tracker.predict()),
+                                  (at_width(c.pnp_first_gate_px, self.camera.width), c.pnp_inlier_px),
+                                  c.pnp_first_min_share, check_final=True)
+        return None if w2c is None else self.tracker.verify(rgb, orthonormalize(inv_pose(w2c)))
+
+    def _fit_to_tracks(self, w2c: np.ndarray, gates: tuple, min_share: float = 0.0,
+                       check_final: bool = False) -> Optional[np.ndarray]:
+        """PnP of the tracked landmarks from pose ``w2c``: at each gate (pixels) in turn, refitted to those that
+        reproject within it (an unchanged set ends it early). None when at a gate fewer than ``pnp_min_points``
+        and than ``min_share`` of them fit, or a fit fails; with ``check_final`` also when too few fit within
+        the last gate at the final pose."""
         found = self.store.tracked_landmarks()
         if found is None:
             return None
         x, uv = found
-        c = self.cfg
-        need = max(c.pnp_min_points, c.pnp_first_min_share * len(x))
-        w2c, last = inv_pose(self.tracker.predict()), None
-        for gate in (at_width(c.pnp_first_gate_px, self.camera.width), c.pnp_inlier_px):
+        need = max(self.cfg.pnp_min_points, min_share * len(x))
+        last = None
+        for gate in gates:
             inl = self._reprojects_within(x, uv, w2c, gate)
             if inl.sum() < need:
                 return None
@@ -287,9 +298,9 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
             w2c, last = refine_pnp(self.camera, x[inl], uv[inl], w2c), inl
             if w2c is None:
                 return None
-        if self._reprojects_within(x, uv, w2c, c.pnp_inlier_px).sum() < need:
+        if check_final and self._reprojects_within(x, uv, w2c, gates[-1]).sum() < need:
             return None
-        return self.tracker.verify(rgb, orthonormalize(inv_pose(w2c)))
+        return w2c
 
     def _reprojects_within(self, x: np.ndarray, uv: np.ndarray, w2c: np.ndarray, px: float) -> np.ndarray:
         """Which world points ``x`` (N, 3) project within ``px`` pixels of ``uv`` (N, 2) at pose ``w2c``."""
@@ -301,15 +312,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
 
     def _pnp(self, c2w: np.ndarray) -> Optional[np.ndarray]:
         """Refine a pose on the reprojection error of the tracked landmarks (inliers of the given pose)."""
-        found = self.store.tracked_landmarks()
-        if found is None:
-            return None
-        x, uv = found
-        w2c = inv_pose(c2w)
-        inl = self._reprojects_within(x, uv, w2c, self.cfg.pnp_inlier_px)
-        if inl.sum() < self.cfg.pnp_min_points:
-            return None
-        refined = refine_pnp(self.camera, x[inl], uv[inl], w2c)
+        refined = self._fit_to_tracks(inv_pose(c2w), (self.cfg.pnp_inlier_px,))
         if refined is None:
             return None
         out = orthonormalize(inv_pose(refined))
