@@ -109,7 +109,7 @@ def run(frames, camera, mono_cfg, trk_cfg, depth=None) -> dict:
             plain.append(not r.need_keyframe)
             est[j] = r.c2w
             lost += int(r.lost)
-        fe.flush_ba()
+        fe.final_ba()
         est.update(fe.poses())
     finally:
         fe_mod.klt_track_gain = klt

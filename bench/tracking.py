@@ -309,7 +309,7 @@ def run_mono(frames, camera, anchor_position: bool = False, cfg=None, poses_out:
         lost += r.lost
         if fe.is_keyframe(j):
             kf_ms.append(r.ms)
-    fe.flush_ba()  # a bundle adjustment still in the worker (ba_thread)
+    fe.final_ba()  # a bundle adjustment still in the worker (ba_thread), then the final one (MonoConfig.final_ba)
     est.update(fe.poses())
     ids = sorted(est)
     if poses_out is not None and ids == list(range(len(frames))):

@@ -266,13 +266,14 @@ class PoseSession:
 
     def finish(self, why: str = "the sequence ended before it") -> list[PoseUpdate]:
         """The stream ended: a bundle adjustment still in the worker (``MonoConfig.ba_thread``) is
-        merged and the poses it moved leave again, then the held poses leave (the late anchor is given
-        up, for ``why``). Frames a bootstrap still holds are answered as skipped (no pose)."""
+        merged, the final one of all keyframes runs (``MonoConfig.final_ba``) and the poses they moved leave
+        again, then the held poses leave (the late anchor is given up, for ``why``). Frames a bootstrap still
+        holds are answered as skipped (no pose)."""
         out: list[PoseUpdate] = []
         if self._skipped is not None:  # no frame after it: no pose
             (k, t_k, _, _), self._skipped = self._skipped, None
             out.append(no_pose(k, t_k))
-        if self.frontend.initialized and self.frontend.flush_ba() and self.cfg.republish:
+        if self.frontend.initialized and self.frontend.final_ba() and self.cfg.republish:
             out += self._refined()
         if not self.frontend.initialized and self._boot:
             boot, self._boot = self._boot, {}

@@ -272,6 +272,13 @@ def test_mono_closes_the_loop_back_at_the_first_keyframe(loop160):
             >= 0.5 * fe.loops[0]["inliers"])
     assert fe.loops[0]["ba_rms_px"] < 1.0
     assert errs[True] < 0.03 and errs[True] < 0.4 * errs[False], errs
+    # a loop was closed: the final bundle adjustment ("after_loops", the default) covers every keyframe
+    assert fe.final_ba() and fe.final_ba_stats["keyframes"] == len(fe.store.kf_pose)
+    p = fe.poses()
+    err_final = np.mean([np.linalg.norm(p[k][:3, 3] - g[k][:3, 3]) for k in range(190, 200)])
+    print(f"final BA: RMS {fe.final_ba_stats['rms_before_px']:.3f} -> {fe.final_ba_stats['rms_after_px']:.3f} px, "
+          f"drift at the end {100 * errs[True]:.2f} -> {100 * err_final:.2f} cm")
+    assert fe.final_ba_stats["rms_after_px"] <= fe.final_ba_stats["rms_before_px"] and err_final < 0.03
 
 
 @pytest.mark.slow

@@ -458,3 +458,61 @@ def test_a_track_whose_landmark_a_late_bundle_adjustment_drops_restarts_at_its_k
             off = [np.linalg.norm(st.lm[i] - world[5 + j]) for j, i in enumerate(made) if i >= 0]
             assert len(off) == 2 and all(d > 0.1 for d in off), off
             print(f"\n[restart] merge-frame pixel: {len(off)} of 2 made again, {np.round(off, 3)} m off")
+
+
+def test_final_bundle_adjustment_pulls_a_keyframe_outside_the_window_back_to_the_observations(room320):
+    """MonoFrontend.final_ba: at the end one bundle adjustment of every keyframe. A keyframe long out of the BA
+    window, knocked off by 1.5 cm and 0.6 deg, stays off after merging the window's adjustment (flush_ba) and
+    comes back to where the same final adjustment puts it unperturbed (measured: 0.05 mm and 0.001 deg
+    apart); the frames stored relative to it move with it, the first two keyframes stay fixed, the
+    reprojection error goes down, and with final_ba "never" nothing moves ("after_loops", the default, neither in
+    this walk without a loop)."""
+    import copy
+    import dataclasses
+
+    from fmapping.datasets import open_dataset
+    from scipy.spatial.transform import Rotation
+
+    from fmapping.metrics import ate
+    from fmapping.tracking.mono import MonoConfig
+
+    ds = open_dataset(room320)
+    fe, g = _run_mono(ds, dataclasses.replace(MonoConfig(), window=3, final_ba="always"))
+    kfs = sorted(fe.store.kf_pose)
+    k = kfs[3]
+    assert k not in fe.store.window and len(kfs) >= 6, (kfs, fe.store.window)
+    frames_of_k = [i for i, (kf, _) in fe.store.rel.items() if kf == k and i != k]
+    assert frames_of_k
+
+    clean = copy.deepcopy(fe)
+    knocked = copy.deepcopy(fe)
+    d = np.eye(4)
+    axis = np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2])
+    d[:3, :3] = Rotation.from_rotvec(np.deg2rad(0.6) * axis).as_matrix()
+    d[:3, 3] = [0.01, -0.008, 0.008]
+    knocked.store.kf_pose[k] = d @ knocked.store.kf_pose[k]
+    off = copy.deepcopy(knocked)
+    off.cfg = dataclasses.replace(off.cfg, final_ba="never")
+    assert off.flush_ba() is False and pose_distance(off.store.kf_pose[k], fe.store.kf_pose[k])[0] > 0.01
+    before = off.poses()
+    assert off.final_ba() is False  # nothing in flight, no final adjustment
+    assert all(np.array_equal(off.poses()[i], before[i]) for i in before)
+    assert not fe.loops  # a 40-frame walk that closes none: "after_loops" (the default) leaves it too
+    after_loops = copy.deepcopy(knocked)
+    after_loops.cfg = dataclasses.replace(after_loops.cfg, final_ba="after_loops")
+    assert after_loops.final_ba() is False
+
+    assert clean.final_ba() and knocked.final_ba()
+    st = knocked.final_ba_stats
+    assert st["keyframes"] == len(kfs) and st["rms_after_px"] < st["rms_before_px"]
+    dt, dr = pose_distance(knocked.store.kf_pose[k], clean.store.kf_pose[k])
+    assert dt < 5e-4 and dr < 0.02, (dt, dr)
+    print(f"keyframe {k} after the final BA, knocked against clean: {dt * 1e3:.3f} mm, {dr:.4f} deg")
+    for j in kfs[:2]:  # the gauge: the first two keyframes stay where they were
+        np.testing.assert_allclose(knocked.store.kf_pose[j], fe.store.kf_pose[j], atol=1e-12)
+    a, b = knocked.poses(), clean.poses()
+    for i in frames_of_k:
+        dt, dr = pose_distance(a[i], b[i])
+        assert dt < 5e-4 and dr < 0.02, (i, dt, dr)
+    ks = sorted(a)
+    assert ate(np.stack([a[i] for i in ks]), np.stack([g[i] for i in ks]), "sim3")["rmse_m"] < 0.01

@@ -53,6 +53,14 @@ class MonoConfig:
     # (bench/results/tracker_cpu/).
     ba_rel_tol: float = 1e-4
     ba_outlier_px: float = 4.0  # observations beyond this after BA are dropped
+    # When the sequence ends, one bundle adjustment of all keyframes (MonoFrontend.final_ba; the first two fixed), at
+    # most final_ba_max_nfev iterations: "after_loops" when a loop was closed, "always" or "never". Paired runs
+    # (bench/results/final_ba_2026-12-06/, Sim3 ATE): 7-Scenes long walk (17-21 loops) 5.35 / 5.04 / 5.03 ->
+    # 4.82 / 4.22 / 4.09 cm; TUM fr1_rpy (no loop) worse in 4 of 4 (1.89-2.21 -> 2.03-2.82); 7-Scenes dev (2-4 loops)
+    # worse in 3 of 4 (median 2.92 -> 2.99); the synthetic rooms with loops unchanged, without (seeds 1, 3) better in
+    # 5 of 6. 30 iterations gave the same.
+    final_ba: str = "after_loops"
+    final_ba_max_nfev: int = 10
     # Solve the keyframe BA in a worker thread while the next frames are tracked (fmapping.tracking.mono.ba_thread):
     # a keyframe then costs its frame ~5 ms instead of ~150 ms. The merge point depends on timing, so results
     # vary from run to run; off for the offline runs, on in the tracker service at a camera's rate.
@@ -121,6 +129,10 @@ class MonoConfig:
     rolling_shutter: float = 0.0
 
     def validate(self) -> None:
+        if self.final_ba not in ("after_loops", "always", "never"):
+            raise ValueError(f"mono.final_ba must be 'after_loops', 'always' or 'never', got {self.final_ba!r}")
+        if self.final_ba_max_nfev < 1:
+            raise ValueError(f"mono.final_ba_max_nfev must be >= 1, got {self.final_ba_max_nfev}")
         if self.frame_pose not in ("direct", "pnp"):
             raise ValueError(f"mono.frame_pose must be 'direct' or 'pnp', got {self.frame_pose!r}")
         if self.frame_pose == "pnp" and self.rolling_shutter:

@@ -20,7 +20,8 @@ from fmapping.tracking.mono.bootstrap import Bootstrap
 from fmapping.tracking.mono.config import MonoConfig
 from fmapping.tracking.mono.loop_closing import LoopClosing
 from fmapping.tracking.mono.restart import Restart
-from fmapping.tracking.mono.store import KeyframeStore, Tracks
+from fmapping.tracking.ba import BAResult
+from fmapping.tracking.mono.store import BAProblem, KeyframeStore, Tracks, solve_ba_problem
 from fmapping.tracking.rolling_shutter import rotation_step, unroll
 
 
@@ -78,7 +79,8 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         self._step = np.zeros(3)  # the current frame's rotation since the previous one (camera frame)
         # the keyframe BA in a worker thread (MonoConfig.ba_thread), merged between frames
         self._bg: Optional[BackgroundBA] = BackgroundBA(camera) if self.cfg.ba_thread else None
-        self.ba_merges = 0  # bundle adjustments from the worker merged so far (their poses moved)
+        self.ba_merges = 0  # bundle adjustments merged so far (the worker's, the final one): their poses moved
+        self.final_ba_stats: Optional[dict] = None  # the final bundle adjustment's (:meth:`final_ba`)
         self._ref_src: Optional[tuple] = None  # (keyframe, landmark ids, pixels, extra points): its reference
 
     def _geo(self, uv: np.ndarray) -> np.ndarray:
@@ -368,13 +370,18 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         return after
 
     def _merge_ba(self, wait: bool) -> bool:
-        """Merge the worker's bundle adjustment when it is done (``wait``: block until it is): the
-        store takes its poses and landmarks, the tracker's references move with their keyframes and
-        the motion model with the current one. True when one was merged."""
+        """Merge the worker's bundle adjustment when it is done (``wait``: block until it is); see
+        :meth:`_take_ba`. True when one was merged."""
         got = None if self._bg is None else self._bg.take(wait)
         if got is None:
             return False
-        prob, res = got
+        self._take_ba(*got)
+        return True
+
+    def _take_ba(self, prob: BAProblem, res: BAResult) -> None:
+        """The solution ``res`` of ``prob`` into the store (its poses and landmarks), the tracker's references
+        moved with their keyframes and the motion model with the current one; a loop closure's back to the
+        graph's scale."""
         before = {k: self.store.kf_pose[k].copy() for k in prob.window if k in self.store.kf_pose}
         dropped = self.store.apply_ba(prob, res)
         moves = {k: self.store.kf_pose[k] @ inv_pose(b) for k, b in before.items()}
@@ -392,7 +399,6 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
                 d = self.store.kf_pose[k] @ inv_pose(was)
                 self.tracker.reset_motion([d @ p for p in self.tracker.motion_history])
             self._moved_all = True
-        return True
 
     def _rebuild_reference(self, dropped: set) -> None:
         """The current keyframe's reference again, from its landmarks as the merged bundle adjustment
@@ -425,6 +431,25 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         """Wait for a bundle adjustment in flight and merge it (the end of a sequence, a snapshot of
         the final poses). True when one was merged."""
         return self._merge_ba(wait=True)
+
+    def final_ba(self) -> bool:
+        """The sequence ended: the bundle adjustment in flight merged (:meth:`flush_ba`), then one bundle
+        adjustment of every keyframe and the landmarks they observe (the first two keyframes fixed, as in the
+        window's), at most ``final_ba_max_nfev`` iterations, when ``MonoConfig.final_ba`` says so ("after_loops":
+        once a loop was closed). The window's adjustment leaves older keyframes where they were when they left it;
+        this one fits them to every observation at once, the loops' too. True when poses moved."""
+        merged = self.flush_ba()
+        kfs = sorted(self.store.kf_pose)
+        mode = self.cfg.final_ba
+        if (not (self.initialized and self.cfg.ba) or mode == "never" or (mode == "after_loops" and not self.loops)
+                or len(kfs) < 3):
+            return merged
+        prob = self.store.ba_problem(window=kfs, max_nfev=self.cfg.final_ba_max_nfev)
+        if prob is None:
+            return merged
+        self._take_ba(prob, solve_ba_problem(self.camera, prob))
+        self.final_ba_stats = dict(self.store.ba_stats[-1])
+        return True
 
     def _set_reference(self, index: int, rgb, gray, extra_depth=None) -> None:
         c = self.cfg
