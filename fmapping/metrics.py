@@ -284,6 +284,43 @@ def umeyama(src, dst, with_scale: bool = True) -> tuple[float, np.ndarray, np.nd
     return s, rot, t
 
 
+def icp_similarity(src, dst, init: Optional[tuple] = None, iters: int = 40, coarse_iters: int = 10,
+                   trim_m: float = 0.10, max_points: int = 100_000, seed: int = 0,
+                   with_scale: bool = True) -> tuple[tuple, dict]:
+    """Refine the similarity ``init = (s, R, t)`` (default the identity) that moves the cloud ``src`` onto the
+    cloud ``dst`` by trimmed point-to-point ICP: each iteration pairs every moved point with its nearest
+    ``dst`` point, keeps the pairs closer than the median distance (at least 5 cm) for ``coarse_iters``
+    iterations and than ``trim_m`` after, and fits them by :func:`umeyama` (rigidly with ``with_scale``
+    False: the scale stays ``init``'s). Both clouds are subsampled to
+    ``max_points``. Returns the composed alignment ``(s, R, t)`` (``x -> s R x + t``, as ``eval_recon_files``
+    takes it) and how far the refinement moved from ``init`` (``rotation_deg``, ``translation_m`` of the
+    cloud's centroid, ``scale``) with the share of the points kept at the end.
+
+    For a map whose trajectory alignment is poorly determined (a monocular map aligned by its camera centres
+    along a nearly planar path leaves the tilt free): the map's shape scored apart from that alignment."""
+    rng = np.random.default_rng(seed)
+    x, y = _points(src, "icp src"), _points(dst, "icp dst")
+    if len(x) < 3 or len(y) < 3:
+        raise ValueError(f"icp: need at least 3 points in each cloud, got {len(x)} and {len(y)}")
+    x = x[rng.choice(len(x), max_points, replace=False)] if len(x) > max_points else x
+    y = y[rng.choice(len(y), max_points, replace=False)] if len(y) > max_points else y
+    s0, r0, t0 = init if init is not None else (1.0, np.eye(3), np.zeros(3))
+    x = float(s0) * x @ np.asarray(r0, np.float64).T + np.asarray(t0, np.float64)
+    tree = cKDTree(y)
+    s, rot, t = 1.0, np.eye(3), np.zeros(3)
+    keep = np.ones(len(x), bool)
+    for it in range(iters):
+        d, idx = tree.query(s * x @ rot.T + t)
+        keep = d < (max(0.05, float(np.median(d))) if it < coarse_iters else trim_m)
+        if keep.sum() < 3:
+            break
+        s, rot, t = umeyama(x[keep], y[idx[keep]], with_scale=with_scale)
+    moved = float(np.linalg.norm(s * rot @ x.mean(0) + t - x.mean(0)))
+    info = {"rotation_deg": float(rotation_angle_deg(rot)), "translation_m": moved, "scale": float(s),
+            "kept_share": float(keep.mean())}
+    return (s * float(s0), rot @ np.asarray(r0, np.float64), s * rot @ np.asarray(t0, np.float64) + t), info
+
+
 def _poses(c2w, what: str) -> np.ndarray:
     p = _np(c2w)
     if p.ndim != 3 or p.shape[1:] != (4, 4):

@@ -548,3 +548,41 @@ def test_timestamp_matching_is_one_to_one():
     i, j = M._match(est_ts, gt_ts, 0.02)
     np.testing.assert_array_equal(i, [1, 2, 3])  # 0.004 is closer to 0.005 than 0.0 is
     np.testing.assert_array_equal(j, [0, 1, 2])
+
+
+def _room_cloud(rng, n: int) -> np.ndarray:
+    """Points on the inside of a 4 x 3 x 2.5 m box room and on a 1 x 0.5 x 0.8 m cabinet in one corner."""
+    faces = []
+    for lo, hi in (((0, 0, 0), (4, 3, 2.5)), ((0.2, 0.2, 0), (1.2, 0.7, 0.8))):
+        lo, hi = np.array(lo, float), np.array(hi, float)
+        for axis in range(3):
+            for side in (lo, hi):
+                p = lo + rng.random((n // 12, 3)) * (hi - lo)
+                p[:, axis] = side[axis]
+                faces.append(p)
+    return np.concatenate(faces)
+
+
+def test_icp_similarity_recovers_a_known_tilt_shift_and_scale_of_a_room():
+    """A room's cloud moved by a known similarity (6 deg about a tilted axis, 12 cm, scale 1.05), with 3 mm
+    noise and 10 % of the points thrown anywhere in the room: trimmed ICP from the identity, and from a Sim3
+    that is part of the way (composed in), lands on the inverse to 0.05 deg, 2 mm and 0.2 %; the info says how far
+    the refinement moved."""
+    from fmapping.metrics import icp_similarity, rotation_angle_deg
+
+    rng = np.random.default_rng(3)
+    dst = _room_cloud(rng, 60_000)
+    rot = Rotation.from_rotvec(np.radians(6.0) * np.array([1.0, 0.4, 0.2]) / np.linalg.norm([1.0, 0.4, 0.2]))
+    s, r, t = 1.05, rot.as_matrix(), np.array([0.08, -0.06, 0.07])
+    src = (dst - t) @ r / s  # s R src + t = dst
+    src = src[rng.permutation(len(src))[:40_000]] + rng.normal(0, 0.003, (40_000, 3))
+    src[:4000] = rng.random((4000, 3)) * [4, 3, 2.5]
+    for init in (None, (1.02, Rotation.from_rotvec(0.5 * rot.as_rotvec()).as_matrix(), 0.5 * t)):
+        (s2, r2, t2), info = icp_similarity(src, dst, init=init)
+        assert abs(s2 / s - 1) < 2e-3
+        assert float(rotation_angle_deg(r2.T @ r)) < 0.05
+        centre = src.mean(0)
+        assert np.linalg.norm((s2 * r2 @ centre + t2) - (s * r @ centre + t)) < 0.002
+        assert info["kept_share"] > 0.85
+        if init is None:
+            assert 5.9 < info["rotation_deg"] < 6.1 and abs(info["scale"] / s - 1) < 2e-3
