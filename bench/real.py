@@ -137,7 +137,7 @@ def variant_overrides(name: str) -> tuple[dict, list]:
     return {k: v for k, v in asked.items() if k in have}, [k for k in asked if k not in have]
 
 
-# variant keys that go to the slam rows' front end (``after+mono={final_ba: false}``), not to the mapper
+# variant keys that go to the slam rows' front end (``after+mono={final_ba: never}``), not to the mapper
 SLAM_SECTIONS = ("mono", "tracker")
 
 
