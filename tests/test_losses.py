@@ -235,6 +235,41 @@ def test_warping_loss_max_angle_leaves_out_a_view_from_far_around():
     assert (n_lim == 1).all()
 
 
+def test_losses_read_a_subset_of_views_in_place_as_they_read_it_copied():
+    """The mapper hands the warping and consistency losses its whole window and the indices of the views to
+    compare (``views``) instead of a copy of those images: the same losses, gradients and costs as the copy."""
+    eye = torch.eye(3, dtype=torch.float64)
+    centres = ([0.0, 0.0, 0.0], [0.3, 0.05, 0.0], [-0.2, 0.1, 0.05], [0.1, -0.15, -0.1])
+    poses = torch.stack([make_pose(eye, torch.tensor(c, dtype=torch.float64)) for c in centres])
+    stack = torch.stack([render_plane(c)[0] for c in poses])
+    views = torch.tensor([3, 0, 1])  # the subset, in the mapper's random order; rays come from view 0 (index 1)
+    c2w = poses[views].float().requires_grad_(True)
+    c2w_copy = poses[views].float().requires_grad_(True)
+    uv, o, d = _center_rays(poses.float(), n=200, seed=2)  # rays of pose 0
+    src = torch.ones(len(uv), dtype=torch.long)
+    depth = torch.full((len(uv),), PLANE_Z * 1.05, requires_grad=True)
+    depth_copy = depth.detach().clone().requires_grad_(True)
+    for ref in (None, sample_frames(stack, torch.zeros(len(uv), dtype=torch.long), uv[:, None] + patch_offsets(1))):
+        a = warping_loss(o, d, depth, uv, src, stack, c2w, CAM, views=views, ref_colors=ref)
+        b = warping_loss(o, d, depth_copy, uv, src, stack[views], c2w_copy, CAM, ref_colors=ref)
+        assert a.valid_rays.float().mean() > 0.9
+        torch.testing.assert_close(a.loss, b.loss)
+        torch.testing.assert_close(a.errors, b.errors)
+        a.loss.backward()
+        b.loss.backward()
+        torch.testing.assert_close(depth.grad, depth_copy.grad)
+        torch.testing.assert_close(c2w.grad, c2w_copy.grad)
+        assert depth.grad.abs().sum() > 0 and c2w.grad.abs().sum() > 0
+    t = torch.linspace(1.0, 3.0, 21)
+    pts = o[:, None] + d[:, None] * t[None, :, None]
+    ref = sample_frames(stack, torch.zeros(len(uv), dtype=torch.long), uv[:, None] + patch_offsets(1))
+    cost, nval = sample_consistency_cost(pts, ref, src, stack, c2w.detach(), CAM, views=views)
+    cost_copy, nval_copy = sample_consistency_cost(pts, ref, src, stack[views], c2w.detach(), CAM)
+    torch.testing.assert_close(cost, cost_copy)
+    torch.testing.assert_close(nval, nval_copy)
+    assert (nval[:, 10] == 2).float().mean() > 0.5  # both other views compared for most rays
+
+
 def test_sample_consistency_cost_minimum_at_surface():
     imgs, c2w = setup_two_views()
     uv, o, d = _center_rays(c2w, n=100)

@@ -378,6 +378,32 @@ def test_exposure_compensation_recovers_known_gain_and_offset():
     assert off.exposure(3) == (pytest.approx(np.ones(3)), pytest.approx(np.zeros(3)))
 
 
+def test_the_updates_consistency_images_made_view_by_view_match_the_window_at_once():
+    """An update keeps its window's images as uint8 and makes the float images the consistency losses see
+    (exposure undone, blurred) one view at a time, for memory; the reference is the obvious whole-window
+    formula on float images. A wrong view's exposure, a missing /255 or a skipped blur all fail it."""
+    from fmapping.losses import gaussian_blur
+    from fmapping.mapping.exposure import undo_exposure
+
+    scene, cam, c2w, views = tiny_scene(12, size=(80, 60))
+    m = Mapper(tiny_config(init_frames=8, consistency_blur=1.0), cam, aabb=room_aabb(scene))
+    feed(m, views, c2w, stop=12)
+    ids = m.window_ids()[-5:]
+    assert len(ids) == 5
+    gen = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for i in ids:  # distinct per-frame colour numbers, as the update would have them
+            m._exposure[i].copy_(0.2 * torch.randn(6, generator=gen))
+    u8 = m._window_images(ids)
+    assert u8.dtype == torch.uint8 and u8.shape == (len(ids), cam.height, cam.width, 3)
+    got = m._scene_images(ids, u8)
+    torch.testing.assert_close(u8, torch.stack([torch.as_tensor(m.keyframe_image(i)) for i in ids]))
+    floats = u8.to(torch.float32) / 255.0
+    want = gaussian_blur(undo_exposure(floats, m._exposure_of(ids).detach()[:, None, None]), 1.0)
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+    assert (got - floats).abs().mean() > 0.02  # the exposures and the blur did change the images
+
+
 def test_a_frame_after_an_exposure_jump_starts_at_its_new_gain():
     """Auto exposure jumps between frames 7 and 8 (gains x1.3 / x1.15 / x0.85): the frames that enter
     the first window update after the init start their colour gain from the previous frame's colours at

@@ -90,17 +90,25 @@ class OptimisationStep:
         corr = table[torch.where(rows < 0, torch.full_like(rows, table.shape[0] - 1), rows)]
         return se3_exp(corr) @ base
 
-    def _images_f(self, ids: list[int]) -> Tensor:
-        return torch.stack([self._images[i] for i in ids]).to(self.device, torch.float32) / 255.0
+    def _window_images(self, ids: list[int]) -> Tensor:
+        """The images of frames ``ids`` as stored, uint8 (V, H, W, 3) on the device: a quarter of float32's
+        memory for the whole update; :meth:`_step` converts the pixels it draws."""
+        return torch.stack([self._images[i] for i in ids]).to(self.device)
 
     @torch.no_grad()
     def _scene_images(self, ids: list[int], imgs: Tensor) -> Tensor:
-        """``imgs`` with each frame's current exposure undone (observed = (1 + a) c + b), smoothed by
-        ``consistency_blur``: the images the losses that compare views with each other see."""
+        """float (V, H, W, 3) in 0..1: ``imgs`` (uint8, :meth:`_window_images`) with each frame's current
+        exposure undone (observed = (1 + a) c + b), smoothed by ``consistency_blur``: the images the losses
+        that compare views with each other see. Made one view at a time, so that the conversion's and the
+        blur's temporaries are one image's, not the window's (they set the update's memory peak otherwise)."""
         expo = self._exposure_of(ids)
-        if expo is not None:
-            imgs = undo_exposure(imgs, expo.detach()[:, None, None])
-        return gaussian_blur(imgs, self.cfg.consistency_blur)
+        out = torch.empty(imgs.shape, dtype=torch.float32, device=self.device)
+        for k in range(len(ids)):
+            img = imgs[k].to(torch.float32).div_(255.0)
+            if expo is not None:
+                img = undo_exposure(img, expo[k].detach())
+            out[k] = gaussian_blur(img[None], self.cfg.consistency_blur)[0]
+        return out
 
     def _sparse_batch(self, ids: list[int]) -> Optional[tuple]:
         """The triangulated points seen by frames ``ids``: (window index, pixel, depth, weight) tensors."""
@@ -127,12 +135,12 @@ class OptimisationStep:
     def _step(self, ids: list[int], imgs: Tensor, mode: str, n_coarse: int, n_fine: int, sw_window: int = 0,
               scene_imgs: Optional[Tensor] = None, sparse: Optional[tuple] = None,
               n_rays: Optional[int] = None) -> dict:
-        """One optimisation iteration over the window ``ids`` (images ``imgs``, float (V, H, W, 3)).
+        """One optimisation iteration over the window ``ids`` (images ``imgs``, uint8 (V, H, W, 3)).
         ``scene_imgs``: the images with each frame's exposure undone (for the losses that compare
         views with each other); ``sparse``: the window's triangulated points (:meth:`_sparse_batch`);
         ``n_rays``: rays of the batch (default ``rays_per_iter``)."""
         cfg, cam = self.cfg, self.camera
-        scene_imgs = imgs if scene_imgs is None else scene_imgs
+        scene_imgs = self._scene_images(ids, imgs) if scene_imgs is None else scene_imgs
         n_rays = cfg.rays_per_iter if n_rays is None else n_rays
         n_views = len(ids)
         gen = self._gen
@@ -143,7 +151,7 @@ class OptimisationStep:
         uv = torch.stack([pix_u, pix_v], -1).to(torch.float32)
         c2w = self._frame_c2w(ids)
         origins, dirs = cam.rays(c2w[ray_view], uv)
-        target = imgs[ray_view, pix_v, pix_u]
+        target = imgs[ray_view, pix_v, pix_u].to(torch.float32) / 255.0
         out, (t_near, t_far, hit) = render_batch(self.field, self.aabb, cfg, origins, dirs, mode, n_coarse, n_fine,
                                                  grad=True, sw_window=sw_window, generator=gen)
         hit_weight = hit.to(torch.float32)  # rays that miss the box count for nothing
@@ -164,14 +172,14 @@ class OptimisationStep:
                 sub = torch.randperm(n_views, generator=gen)[:cfg.warp_views].to(self.device)
                 pos = torch.full((n_views,), -1, dtype=torch.long, device=self.device)
                 pos[sub] = torch.arange(len(sub), device=self.device)
-                w_imgs, w_c2w, w_src = scene_imgs[sub], c2w[sub], pos[ray_view]
+                w_views, w_c2w, w_src = sub, c2w[sub], pos[ray_view]  # the images read in place, not copied
             else:
-                w_imgs, w_c2w, w_src = scene_imgs, c2w, ray_view
+                w_views, w_c2w, w_src = None, c2w, ray_view
             for dil in cfg.warp_dilations:
                 ref = _pixel_patches(scene_imgs, ray_view, pix_u, pix_v, cfg.warp_radius, int(round(float(dil))))
-                res = warping_loss(origins, dirs, depth, uv, w_src, w_imgs, w_c2w, cam, radius=cfg.warp_radius,
+                res = warping_loss(origins, dirs, depth, uv, w_src, scene_imgs, w_c2w, cam, radius=cfg.warp_radius,
                                    dilation=float(dil), keep=cfg.warp_keep, min_z=cfg.near, ray_weight=hit_weight,
-                                   ref_colors=ref, max_angle_deg=cfg.consistency_max_angle)
+                                   ref_colors=ref, max_angle_deg=cfg.consistency_max_angle, views=w_views)
                 warp = warp + res.loss / len(cfg.warp_dilations)
             loss = loss + cfg.warp_weight * warp
         pc = torch.zeros((), device=self.device)
@@ -224,9 +232,10 @@ class OptimisationStep:
         t = out.t[:m].detach()
         pts = origins[:m, None].detach() + dirs[:m, None].detach() * t[..., None]
         ref = _pixel_patches(imgs, ray_view[:m], pix_u[:m], pix_v[:m], cfg.pc_radius, 1)
-        cost, nval = sample_consistency_cost(pts, ref, src, imgs[views], c2w[views].detach(), self.camera,
+        cost, nval = sample_consistency_cost(pts, ref, src, imgs, c2w[views].detach(), self.camera,
                                              radius=cfg.pc_radius, keep=cfg.pc_keep, min_z=cfg.near,
-                                             ray_dirs=dirs[:m].detach(), max_angle_deg=cfg.consistency_max_angle)
+                                             ray_dirs=dirs[:m].detach(), max_angle_deg=cfg.consistency_max_angle,
+                                             views=views)
         valid = (nval > 0).to(cost.dtype)
         cbar = (cost * valid).sum(-1, keepdim=True) / valid.sum(-1, keepdim=True).clamp_min(1)
         w = out.weights[:m]
@@ -239,7 +248,7 @@ class OptimisationStep:
         (default: the optimiser's as it is)."""
         t0 = time.perf_counter() if t0 is None else t0
         n_rays = self.cfg.rays_per_iter if n_rays is None else n_rays
-        imgs = self._images_f(ids)
+        imgs = self._window_images(ids)
         sparse = self._sparse_batch(ids)
         scene_imgs = self._scene_images(ids, imgs)  # the exposures move slowly: undone once per update
         logs = []
