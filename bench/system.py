@@ -34,7 +34,9 @@ Every ``--interval`` seconds it records (time series, ``t`` = seconds since the 
   gave up on (tracker ``frames_skipped`` / ``frames_lost``; mapper ``frames_without_pose``,
   ``frames_skipped``);
 * ``rss_mb``: resident memory of every child process (psutil, else /proc/<pid>/status); the summary's
-  ``rss_mb_growth`` is each service's from frame 200 to the end of playback (issue 18: within 10 %).
+  ``rss_mb_growth`` is each service's from frame 200 to the end of playback (issue 18: within 10 %), one
+  sample at frame 200 against the highest after it; ``rss_mb_envelope`` compares the lowest and the highest
+  RSS over frames 200-399 with those over the last 200 frames (the mapper's RSS is a sawtooth of updates).
 
 At the end of each run: the final counters, per-frame latencies (tracker pose - publish,
 first mapper pose - publish; the tracker's also frame by frame: ``frames`` in the JSON, dots in the
@@ -109,6 +111,8 @@ def _rss_proc(pid: int) -> Optional[float]:
 
 #: Issue 18's memory measure: each service's resident size from this frame on (flat to within 10 %).
 RSS_FROM_FRAME = 200
+#: frames per span of :func:`rss_envelope` (frames 200-399 against the last 200 of playback)
+RSS_ENVELOPE_SPAN = 200
 
 
 def rss_growth(rows: list[dict], from_frame: int, until_t) -> dict:
@@ -125,6 +129,31 @@ def rss_growth(rows: list[dict], from_frame: int, until_t) -> dict:
         if at and vals:
             out[name] = {"at_frame": round(at, 1), "max_after": round(max(vals), 1),
                          "growth_pct": round(100.0 * (max(vals) / at - 1.0), 1)}
+    return out
+
+
+def rss_envelope(rows: list[dict], from_frame: int, span: int, until_t) -> dict:
+    """Per service: the lowest and highest RSS (MB) while frames ``from_frame`` .. ``from_frame + span`` were
+    published and while the last ``span`` frames of playback were (up to ``until_t``), and the growth of each
+    in %. The mapper's RSS is a sawtooth (an update's temporaries, handed back after it): :func:`rss_growth`
+    compares one sample, possibly a trough, with the highest peak after it; this compares peaks with peaks
+    and troughs with troughs. Empty when the run is too short for two disjoint spans."""
+    pub = [r.get("published", -1) for r in rows]
+    last = max(pub, default=-1)
+    if last - span < from_frame + span:
+        return {}
+    first = [r for r, p in zip(rows, pub) if from_frame <= p < from_frame + span]
+    end = [r for r, p in zip(rows, pub) if p > last - span and (until_t is None or r["t"] <= until_t)]
+    out = {}
+    for name in sorted({n for r in first for n in r.get("rss_mb", {})}):
+        a = [r["rss_mb"][name] for r in first if r.get("rss_mb", {}).get(name)]
+        b = [r["rss_mb"][name] for r in end if r.get("rss_mb", {}).get(name)]
+        if a and b:
+            out[name] = {"frames": [from_frame, from_frame + span, last - span + 1, last + 1],
+                         "min_first": round(min(a), 1), "max_first": round(max(a), 1),
+                         "min_last": round(min(b), 1), "max_last": round(max(b), 1),
+                         "floor_growth_pct": round(100.0 * (min(b) / min(a) - 1.0), 1),
+                         "peak_growth_pct": round(100.0 * (max(b) / max(a) - 1.0), 1)}
     return out
 
 
@@ -436,6 +465,7 @@ def summarize(fps: float, rows: list[dict], mon: Monitor, out: Path, scene: Path
     if end_row:
         s["rss_mb_end_of_playback"] = end_row.get("rss_mb", {})
     s["rss_mb_growth"] = rss_growth(rows, RSS_FROM_FRAME, play_end)
+    s["rss_mb_envelope"] = rss_envelope(rows, RSS_FROM_FRAME, RSS_ENVELOPE_SPAN, play_end)
     done_t = next((r["t"] for r in rows if r.get("mapper_state") == "done"), None)
     s["mapper"]["done_after_playback_s"] = round(done_t - play_end, 1) if done_t is not None and play_end else None
     s["loadavg1"] = _stats([r.get("loadavg1") for r in rows])
