@@ -94,6 +94,9 @@ def main(argv=None) -> int:
     from fmapping.synthetic import generate_scene
 
     torch.set_num_threads(a.threads)
+    from fmapping.runtime import preload_optimiser
+
+    preload_optimiser()  # the first optimiser's imports (1-2 s) out of the first variant's time, as the service does
     size = tuple(int(v) for v in a.size.split("x"))
     data = Path(a.work) / f"scene_s{a.seed}_{a.variety}_{a.size}"
     if not (data / "rgb.txt").exists():

@@ -16,6 +16,10 @@ thread), while one thread is as fast for the bundle adjustment's matrices.
 The ``fmapping`` CLI retains freed memory; the tracker service does both at start. Both are
 no-ops (returning False) where the library in question is absent.
 
+**First optimiser.** The first ``torch.optim`` optimiser a process makes imports ``torch._dynamo`` (and with it
+sympy): 1.1-2.3 s on the 2-core machines, paid by the mapper's init, on the first frames' path, unless
+:func:`preload_optimiser` paid it at start (the mapper service does).
+
 **Trimming.** :func:`release_free_memory` hands the heap's free pages back after each mapper update
 (once per update, not per temporary: the retained reuse within an update stays), and the tracker's worker
 after a loop closure's bundle adjustment (``MonoConfig.ba_release_memory``).
@@ -93,3 +97,15 @@ def limit_blas_threads(n: int = 1) -> bool:
         return False
     threadpool_limits(limits=n, user_api="blas")
     return True
+
+
+def preload_optimiser() -> float:
+    """Make and drop a throwaway torch optimiser, so that the imports of a process's first one (``torch._dynamo``,
+    sympy) happen now rather than in the mapper's init. Returns the seconds it took (near 0 once done)."""
+    import time
+
+    import torch
+
+    t0 = time.perf_counter()
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)])
+    return time.perf_counter() - t0

@@ -189,3 +189,20 @@ def test_the_ba_worker_hands_a_solves_freed_memory_back():
     if kept < 48:
         pytest.skip(f"the allocator here returned the temporaries by itself ({kept:.0f} MB kept)")
     assert released < 16, (kept, released)
+
+
+_PRELOAD = """
+import sys
+import fmapping.mapping  # the mapper's own imports do not bring it in
+from fmapping.runtime import preload_optimiser
+before = "torch._dynamo" in sys.modules
+preload_optimiser()
+print(int(before), int("torch._dynamo" in sys.modules))
+"""
+
+
+def test_preload_optimiser_does_the_first_optimisers_imports_at_once():
+    """A fresh process imports ``torch._dynamo`` with its first torch optimiser (1-2 s, the mapper service's
+    init paid it on the first frames' path): preload_optimiser() makes that happen when it is called."""
+    before, after = _fresh(_PRELOAD).split()
+    assert (before, after) == ("0", "1")

@@ -18,6 +18,7 @@ import time
 
 from fmapping import protocol as P
 from fmapping.cancel import Cancelled
+from fmapping.runtime import preload_optimiser
 from services.core_support import MIB
 from services.mapper.core import (
     POSE_SOURCES, MapperCore, MapperServiceOptions, await_source_final, load_mapper_config,
@@ -97,7 +98,10 @@ def main(argv=None, session=None, keys=None) -> int:
                      f"{args.inbox_mb})")
     setup_logging(args.log_level, "mapper")
     threads = set_torch_threads(args.threads, auto=available_cpus() // 2)
-    logging.getLogger("fmapping.mapper").info("torch threads: %d", threads)
+    log = logging.getLogger("fmapping.mapper")
+    log.info("torch threads: %d", threads)
+    # before the service has a status (play waits for it): the first optimiser's imports, not in the init
+    log.info("torch optimiser preloaded in %.2f s", preload_optimiser())
     overrides = {"field": {"kind": args.field}} if args.field else None
     cfg = load_mapper_config(args.config, overrides)
     if args.device:
