@@ -27,7 +27,7 @@ import threading
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
-from fmapping.runtime import retain_freed_memory
+from fmapping.runtime import preload_optimiser, retain_freed_memory
 
 
 DATA_HELP = ("a dataset folder (TUM, Replica, 7-Scenes, NeRF transforms.json, fmapping synth), a plain image "
@@ -293,6 +293,7 @@ def cmd_slam(a) -> int:
     from fmapping.job import Job
     from fmapping.slam import run_slam
 
+    preload_optimiser()  # the first optimiser's imports now, not in the mapper's init while a live camera runs
     with stop_on_signal("fmapping slam") as stop:
         stats = run_slam(Job.from_args(a, poses="photometric"), should_stop=stop.is_set)
     summary = stats.get("summary", {})

@@ -210,12 +210,16 @@ class KeyframeStore:
             m = np.flatnonzero((~has) & (tr.first_kf == kf))
             pts, ok = triangulate(self.camera, self.kf_pose[kf], c2w, tr.uv_first[m], tr.geo[m],
                                   c.tri_min_parallax_deg, c.tri_max_reproj_px)
-            for j, p in zip(m[ok], pts[ok]):
-                lid = len(self.lm)
-                self.lm.append(p)
-                tr.lid[j] = lid
-                self.obs.append(int(kf), lid, tr.uv_first[j, 0], tr.uv_first[j, 1])
-                self.obs.append(index, lid, tr.geo[j, 0], tr.geo[j, 1])
+            sel = m[ok]
+            lids = np.arange(len(self.lm), len(self.lm) + len(sel))
+            self.lm.extend(pts[ok])
+            tr.lid[sel] = lids
+            # two rows per new landmark, in turn: its first keyframe's observation, then this one's
+            rows_kf = np.empty(2 * len(sel), np.int64)
+            rows_kf[0::2], rows_kf[1::2] = int(kf), index
+            rows_uv = np.empty((2 * len(sel), 2))
+            rows_uv[0::2], rows_uv[1::2] = tr.uv_first[sel], tr.geo[sel]
+            self.obs.extend(rows_kf, np.repeat(lids, 2), rows_uv)
         self.window.append(index)
         if len(self.window) > c.window:
             old = self.window.pop(0)
