@@ -379,3 +379,43 @@ def test_the_mapper_takes_the_sources_final_poses_before_its_closing_stage(room3
     plain = MapperCore(small_cfg(), MapperServiceOptions(pose_source="external"), counters=Counters())
     t0 = now[0]
     assert await_source_final(inbox([]), plain, lambda o: None, timeout=3.0, clock=lambda: now[0]) and now[0] == t0
+
+
+def test_tracker_core_logs_a_relocalisation_with_its_frame(room320, caplog):
+    """The tracker service logs its front end's rare events with their frame (a failed live run has nothing
+    else to read afterwards): a frame whose direct alignment is forced to fail is re-localised by PnP, and
+    that frame's line is in the log, once."""
+    import logging
+
+    from fmapping.datasets import open_dataset
+    from fmapping.tracking.direct_tracker import TrackResult
+    from services.tracker.core import TrackerCore, TrackerServiceOptions
+
+    ds = open_dataset(room320)
+    target = 21
+    core = TrackerCore(opts=TrackerServiceOptions(frame_pose="direct"))
+
+    def feed(k):
+        return core.handle("frames", P.encode(P.frame_from_dataset(ds[k], seq=k, with_depth=False)))
+
+    for k in range(target):
+        feed(k)
+    fe = core.session.frontend
+    assert fe.initialized
+    real, calls = fe.tracker.track, []
+
+    def failing(rgb, c2w_guess=None):
+        calls.append(c2w_guess)
+        if len(calls) == 1:  # the first alignment of the frame fails; the one from the PnP pose is real
+            return TrackResult(fe.tracker.predict(), True, False, False, float("nan"), 0.0, 0.0, 0, 0.0,
+                               fe.tracker.reference.frame_index, "forced loss")
+        return real(rgb, c2w_guess)
+
+    fe.tracker.track = failing
+    with caplog.at_level(logging.INFO, logger="fmapping.tracker"):
+        feed(target)
+        fe.tracker.track = real
+        feed(target + 1)
+    assert core.counters.get("relocalised") == 1 and core.counters.get("frames_lost") == 0
+    lines = [r.getMessage() for r in caplog.records if "re-localised" in r.getMessage()]
+    assert len(lines) == 1 and lines[0].startswith(f"frame {target} re-localised"), lines

@@ -52,6 +52,7 @@ the saved keyframes' file is read and written by :mod:`services.tracker.resume_s
 """
 from __future__ import annotations
 
+import logging
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -65,6 +66,10 @@ from fmapping.session import REFINED, SKIPPED
 from services.core_support import ServiceCore
 from services.tracker.map_frontend import MapFrontend
 from services.tracker.resume_state import StateWriter, load_resume_state
+
+# the front end's rare events (re-localisation, loop closures, re-initialisations), one line each with its frame:
+# what a failed run's post-mortem needs beside the poses (OUT/logs/tracker.log in fmapping up)
+log = logging.getLogger("fmapping.tracker")
 
 
 
@@ -425,10 +430,13 @@ class TrackerCore(MapFrontend, ServiceCore):
                 self.counters.inc("frames_skipped_behind")
                 out += self._publish(sess.skip(seq, f.timestamp))  # now without a pose, or interpolated later
                 continue
+            fe = sess.frontend
+            loops, refused, reinits = len(fe.loops), len(fe.loops_refused), len(fe.reinits)
             ups = sess.push(seq, np.asarray(f.rgb), f.timestamp, extra_depth=self._extra_depth())
             self._count(f, sess.last)
             out += self._publish(ups)
             self._save_state()
+            self._log_events(seq, fe.loops[loops:], fe.loops_refused[refused:], fe.reinits[reinits:])
             self.counters.set("loop_closures", len(sess.frontend.loops))
             self.counters.set("keyframes_deferred", sess.frontend.keyframes_deferred)
             self.counters.set("frames_posed_by_pnp", sess.frontend.frames_pnp)  # (--frame-pose pnp)
@@ -517,6 +525,18 @@ class TrackerCore(MapFrontend, ServiceCore):
             return self._advance_mono()
         return self._advance_map()
 
+    @staticmethod
+    def _log_events(seq: int, loops: list, refused: list, reinits: list) -> None:
+        """One log line per loop closed or refused and per re-initialisation while frame ``seq`` was tracked."""
+        for r in loops:
+            log.info("frame %d: loop closed at keyframe %d onto keyframe %d (%d inliers, moved %.3g m / %.2f deg)",
+                     seq, r["frame"], r["keyframe"], r["inliers"], r["moved_m"], r["moved_deg"])
+        for r in refused:
+            log.info("frame %d: loop at keyframe %d onto keyframe %d refused: %s", seq, r["frame"], r["keyframe"],
+                     r.get("why", ""))
+        for i in reinits:
+            log.info("frame %d: re-initialised at frame %d (the track was lost)", seq, i)
+
     def _count(self, f: P.Frame, res) -> float:
         """Count a tracking result; its pose's quality (0 when lost)."""
         self.counters.inc("frames_tracked")
@@ -528,6 +548,7 @@ class TrackerCore(MapFrontend, ServiceCore):
             return 0.0
         if res.relocalised:
             self.counters.inc("relocalised")
+            log.info("frame %d re-localised%s", f.seq, f": {res.reason}" if res.reason else "")
         self._motion_seq = f.seq
         return float(max(res.inlier_ratio, 1e-6))
 
