@@ -290,10 +290,12 @@ def cmd_map(a) -> int:
 
 
 def cmd_slam(a) -> int:
+    from fmapping.datasets import is_live_spec
     from fmapping.job import Job
     from fmapping.slam import run_slam
 
-    preload_optimiser()  # the first optimiser's imports now, not in the mapper's init while a live camera runs
+    if is_live_spec(a.data):  # the first optimiser's imports now, not in the mapper's init while the camera runs
+        preload_optimiser()
     with stop_on_signal("fmapping slam") as stop:
         stats = run_slam(Job.from_args(a, poses="photometric"), should_stop=stop.is_set)
     summary = stats.get("summary", {})

@@ -18,7 +18,7 @@ no-ops (returning False) where the library in question is absent.
 
 **First optimiser.** The first ``torch.optim`` optimiser a process makes imports ``torch._dynamo`` (and with it
 sympy): 1.1-2.3 s on the 2-core machines, paid by the mapper's init, on the first frames' path, unless
-:func:`preload_optimiser` paid it at start (the mapper service and ``fmapping slam`` do).
+:func:`preload_optimiser` paid it at start (the mapper service does, and ``fmapping slam`` on a live camera).
 
 **Trimming.** :func:`release_free_memory` hands the heap's free pages back after each mapper update
 (once per update, not per temporary: the retained reuse within an update stays), and the tracker's worker

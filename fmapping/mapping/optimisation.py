@@ -132,15 +132,13 @@ class OptimisationStep:
                 torch.as_tensor(z, dtype=torch.float32, device=dev),
                 torch.as_tensor(w, dtype=torch.float32, device=dev))
 
-    def _step(self, ids: list[int], imgs: Tensor, mode: str, n_coarse: int, n_fine: int, sw_window: int = 0,
-              scene_imgs: Optional[Tensor] = None, sparse: Optional[tuple] = None,
-              n_rays: Optional[int] = None) -> dict:
+    def _step(self, ids: list[int], imgs: Tensor, mode: str, n_coarse: int, n_fine: int, sw_window: int,
+              scene_imgs: Tensor, sparse: Optional[tuple] = None, n_rays: Optional[int] = None) -> dict:
         """One optimisation iteration over the window ``ids`` (images ``imgs``, uint8 (V, H, W, 3)).
         ``scene_imgs``: the images with each frame's exposure undone (for the losses that compare
-        views with each other); ``sparse``: the window's triangulated points (:meth:`_sparse_batch`);
-        ``n_rays``: rays of the batch (default ``rays_per_iter``)."""
+        views with each other; :meth:`_scene_images`, made once per update); ``sparse``: the window's
+        triangulated points (:meth:`_sparse_batch`); ``n_rays``: rays of the batch (default ``rays_per_iter``)."""
         cfg, cam = self.cfg, self.camera
-        scene_imgs = self._scene_images(ids, imgs) if scene_imgs is None else scene_imgs
         n_rays = cfg.rays_per_iter if n_rays is None else n_rays
         n_views = len(ids)
         gen = self._gen
