@@ -281,6 +281,40 @@ def se3_exp_np(xi: np.ndarray) -> np.ndarray:
     return out
 
 
+def so3_log_np(r: np.ndarray) -> np.ndarray:
+    """Rotation vector (3,) of one rotation matrix (3, 3), angle in [0, pi) (:func:`so3_log` for one matrix in
+    numpy; the axis is ill-defined only at pi, which a camera's motion between two frames never nears)."""
+    w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / 2.0
+    s = float(np.linalg.norm(w))
+    th = math.atan2(s, (float(np.trace(r)) - 1.0) / 2.0)
+    return w * (th / s if s > 1e-12 else 1.0 + s * s / 6.0)
+
+
+def se3_log_np(t: np.ndarray) -> np.ndarray:
+    """Twist (6,) (rho, phi) of one rigid transform (4, 4) in float64: :func:`se3_log` for one matrix in numpy,
+    the inverse of :func:`se3_exp_np`."""
+    phi = so3_log_np(t[:3, :3])
+    th2 = float(phi @ phi)
+    if th2 < 1e-10:
+        d = 1.0 / 12.0 + th2 / 720.0
+    else:
+        th = math.sqrt(th2)
+        d = (1.0 - (th / 2.0) / math.tan(th / 2.0)) / th2
+    k = hat_np(phi)
+    return np.concatenate([(np.eye(3) - 0.5 * k + d * (k @ k)) @ t[:3, 3], phi])
+
+
+def extrapolate_motion(prev: np.ndarray, last: np.ndarray, ratio: float = 1.0) -> np.ndarray:
+    """Constant velocity: the pose (4, 4) after ``last`` when the camera goes on moving as it did from ``prev`` to
+    ``last`` for ``ratio`` times that step, ``last @ step ** ratio`` with the step ``inv(prev) @ last`` in the
+    camera's own frame (a screw motion: ``exp(ratio log(step))``). ``ratio`` 1 gives ``last @ step``; 0.5 fits the
+    last two poses two frames apart and the next frame one after the last (a frame skipped in between)."""
+    step = inv_pose(prev) @ last
+    if ratio == 1.0:
+        return last @ step
+    return last @ se3_exp_np(ratio * se3_log_np(step))
+
+
 def inv_pose(t: np.ndarray) -> np.ndarray:
     """Inverse of a 4x4 rigid transform."""
     out = np.eye(4)

@@ -131,6 +131,32 @@ def test_se3_exp_np_matches_geometry():
         np.testing.assert_allclose(g.se3_exp_np(xi), ref, atol=1e-12)
 
 
+def test_se3_log_np_matches_geometry_and_inverts_se3_exp_np():
+    """The one-matrix numpy log against the batched torch one, from 1e-7 rad up to 2.5 rad of rotation, and
+    exp(log(T)) = T."""
+    rng = np.random.default_rng(1)
+    for scale in (0.0, 1e-7, 1e-3, 0.3, 1.0):
+        xi = rng.normal(size=6) * scale
+        t = g.se3_exp_np(xi)
+        np.testing.assert_allclose(g.se3_log_np(t), g.se3_log(torch.as_tensor(t)).numpy(), atol=1e-10)
+        np.testing.assert_allclose(g.se3_log_np(t), xi, atol=1e-10)
+        np.testing.assert_allclose(g.se3_exp_np(g.se3_log_np(t)), t, atol=1e-12)
+
+
+def test_extrapolate_motion_follows_a_constant_screw_motion_over_any_gap():
+    """A camera moving by the same body-frame step every frame (pose k = P0 exp(k xi)): from two poses any number
+    of frames apart, the prediction any number of frames later is that frame's pose; ratio 1 is the plain
+    constant-velocity product."""
+    rng = np.random.default_rng(2)
+    p0 = g.se3_exp_np(rng.normal(0, 0.5, 6))
+    xi = np.array([0.02, -0.01, 0.03, 0.01, 0.02, -0.015])
+    pose = lambda k: p0 @ g.se3_exp_np(k * xi)  # noqa: E731
+    for a, b, c in ((3, 4, 5), (3, 5, 6), (2, 3, 5), (0, 2, 7), (4, 7, 8)):
+        got = g.extrapolate_motion(pose(a), pose(b), (c - b) / (b - a))
+        np.testing.assert_allclose(got, pose(c), atol=1e-12)
+    np.testing.assert_array_equal(g.extrapolate_motion(pose(1), pose(2)), pose(2) @ (g.inv_pose(pose(1)) @ pose(2)))
+
+
 def test_orthonormalize_projects_to_rotation():
     t = g.se3_exp_np(np.array([0.1, 0.2, 0.3, 0.4, -0.2, 0.1]))
     noisy = t.copy()

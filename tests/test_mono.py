@@ -460,6 +460,103 @@ def test_a_track_whose_landmark_a_late_bundle_adjustment_drops_restarts_at_its_k
             print(f"\n[restart] merge-frame pixel: {len(off)} of 2 made again, {np.round(off, 3)} m off")
 
 
+def test_a_track_far_from_its_landmark_at_a_keyframe_restarts_there_and_adds_no_observation():
+    """A KLT track that leaves the frame can stick inside its border, tens of pixels from its landmark. At the
+    next keyframe it must not add that observation (a few dozen of them bent a window BA by 15 cm): it starts
+    again from the keyframe, as a BA outlier does. Exact projections of known points, 6 tracks moved 30 px:
+    they restart, the others observe; a keyframe pose off by so much that most tracks are far restarts none."""
+    from fmapping.camera import PinholeCamera
+    from fmapping.tracking.mono import MonoConfig
+    from fmapping.tracking.mono.store import KeyframeStore, Tracks
+
+    cam = PinholeCamera(250.0, 250.0, 159.5, 119.5, 320, 240)
+    rng = np.random.default_rng(1)
+    world = np.c_[rng.uniform(-1.5, 1.5, 40), rng.uniform(-1.0, 1.0, 40), rng.uniform(3.5, 4.5, 40)]
+
+    def pose(x):
+        p = np.eye(4)
+        p[0, 3] = x
+        return p
+
+    stray = np.arange(6)
+    for kf_pose, restarted in ((pose(0.3), set(stray.tolist())), (pose(0.3) @ pose(0.5), set())):
+        st = KeyframeStore(cam, MonoConfig())
+        st.kf_pose = {0: pose(0.0)}
+        st.lm = list(world)
+        st.obs.extend(0, np.arange(len(world)), cam.world_to_pixels(pose(0.0), world)[0])
+        st.window = [0]
+        uv = cam.world_to_pixels(pose(0.3), world)[0]
+        uv[stray, 0] -= 30.0
+        tr = st.tracks = Tracks(uv, 0)
+        tr.lid = np.arange(len(world))
+        st.add_keyframe(10, np.zeros((240, 320, 3), np.uint8), kf_pose)
+        seen = set(st.obs.of_keyframe(10)[0].tolist())
+        assert set(np.flatnonzero(tr.lid < 0).tolist()) == restarted
+        assert seen == set(range(len(world))) - restarted
+        assert st.stray_restarts == len(restarted)
+        if restarted:
+            assert (tr.first_kf[stray] == 10).all()
+            np.testing.assert_array_equal(tr.uv_first[stray], uv[stray])
+    st = KeyframeStore(cam, MonoConfig(kf_obs_max_px=0.0))  # off: every track observes, as before
+    st.kf_pose, st.lm, st.window = {0: pose(0.0)}, list(world), [0]
+    tr = st.tracks = Tracks(uv, 0)
+    tr.lid = np.arange(len(world))
+    st.add_keyframe(10, np.zeros((240, 320, 3), np.uint8), pose(0.3))
+    assert len(st.obs.of_keyframe(10)[0]) == len(world)
+
+
+@pytest.mark.parametrize("guided", [False, True])
+def test_tracks_across_a_skipped_frame_on_a_repeating_pattern_start_from_the_motion_models_guess(guided):
+    """Frames skipped to keep pace double the flow KLT must find. On a repeating pattern (a checkerboard wall,
+    as in the system bench's room at frames 110-130) a flow beyond half a period makes it lock onto the next
+    period: the track stays, a period off, and passes the forward-backward check. ``klt_gap_guess`` starts
+    the tracks of the frame after a gap where the motion model puts their landmarks. A fronto-parallel wall
+    (period 16 px) seen by a camera sliding 6 px a frame: tracked at frames 10 and 11, frame 12 skipped,
+    frame 13 is 12 px on. Without the guess most tracks are a period off; with it all are within 0.5 px."""
+    import cv2
+
+    from fmapping.camera import PinholeCamera
+    from fmapping.tracking.features import detect_corners
+    from fmapping.tracking.mono import MonoConfig, MonoFrontend
+    from fmapping.tracking.mono.store import Tracks
+
+    cam = PinholeCamera(200.0, 200.0, 159.5, 119.5, 320, 240)
+    z, per_frame_px = 2.0, 6.0
+    yy, xx = np.mgrid[0:240, 0:480]
+    wall = ((((xx // 8) + (yy // 8)) % 2) * 120 + 60).astype(np.float32)
+    wall = cv2.GaussianBlur(wall, (0, 0), 1.2)
+
+    def frame(k):  # the camera moves along +x: the wall slides left by per_frame_px a frame
+        sh = int(round(per_frame_px * k))
+        return np.ascontiguousarray(wall[:, sh:sh + 320]).astype(np.uint8)
+
+    def pose(k):
+        p = np.eye(4)
+        p[0, 3] = per_frame_px * k * z / cam.fx
+        return p
+
+    fe = MonoFrontend(cam, cfg=MonoConfig(klt_gap_guess=guided, klt_from_keyframe=False))
+    g11 = frame(11)
+    uv = detect_corners(g11, fe.cfg.klt).astype(np.float64)
+    uv = uv[(uv[:, 0] > 40) & (uv[:, 0] < 260) & (uv[:, 1] > 20) & (uv[:, 1] < 220)]
+    assert len(uv) >= 40
+    world = np.c_[(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, np.full(len(uv), z)]
+    world = world + pose(11)[:3, 3]
+    tr = fe.store.tracks = Tracks(uv, 10)
+    tr.lid = np.arange(len(uv))
+    fe.store.lm = list(world)
+    fe._last_gray, fe._last_gray_frame = g11, 11
+    fe.tracker.reset_motion([pose(10), pose(11)], [10, 11])
+    fe.tracker.at_frame(13)
+    fe._klt(frame(13), 13, None)
+    truth = uv[tr.tid] - [2 * per_frame_px, 0.0]
+    err = np.linalg.norm(tr.uv - truth, axis=1)
+    if guided:
+        assert len(err) == len(uv) and err.max() < 0.5, err.max()
+    else:  # what the tracker did before: tracks kept a period (16 px) off
+        assert (err > 4.0).mean() > 0.5, np.round(err, 1)
+
+
 def test_final_bundle_adjustment_pulls_a_keyframe_outside_the_window_back_to_the_observations(room320):
     """MonoFrontend.final_ba: at the end one bundle adjustment of every keyframe. A keyframe long out of the BA
     window, knocked off by 1.5 cm and 0.6 deg, stays off after merging the window's adjustment (flush_ba) and

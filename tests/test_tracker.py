@@ -176,6 +176,50 @@ def test_tracker_verify_takes_a_good_pose_from_elsewhere_and_refuses_a_wrong_one
     assert pose_distance(tr.motion_history[-1], c2w1)[0] < 1e-9
 
 
+def test_motion_model_predicts_across_skipped_frames_from_the_frame_indices():
+    """A live tracker that cannot keep up skips frames (never two in a row). The constant-velocity prediction
+    must cover the frames since the last pose: with poses at frames 10 and 12 and frame 13 next it is half the
+    step, with poses at 12 and 13 and frame 15 next two steps. Without indices it is one step, as before; the
+    true pose of a camera moving at constant velocity is then a whole frame's motion away."""
+    rng = np.random.default_rng(3)
+    p0 = se3_exp_np(rng.normal(0, 0.3, 6))
+    xi = np.array([0.024, 0.004, -0.006, 0.002, 0.015, 0.001])  # 2.5 cm and ~0.9 deg a frame
+    pose = lambda k: p0 @ se3_exp_np(k * xi)  # noqa: E731
+    cam = PinholeCamera(250.0, 250.0, 159.5, 119.5, 320, 240)
+    for seen, nxt in (((10, 12), 13), ((12, 13), 15), ((20, 21), 22)):
+        tr = DirectTracker(cam, TrackerConfig())
+        for k in seen:
+            tr.at_frame(k)
+            tr.observe(pose(k))
+        tr.at_frame(nxt)
+        dt, dr = pose_distance(tr.predict(), pose(nxt))
+        assert dt < 1e-9 and dr < 1e-7, (seen, nxt, dt, dr)
+        blind = DirectTracker(cam, TrackerConfig())  # no frame indices: one step per pose
+        for k in seen:
+            blind.observe(pose(k))
+        off = pose_distance(blind.predict(), pose(nxt))[0]
+        if nxt - seen[1] == seen[1] - seen[0]:
+            assert off < 1e-9
+        else:
+            assert off > 0.01, off
+    # the history moves with its keyframe and keeps its frames; a history given anew takes its own
+    tr = DirectTracker(cam, TrackerConfig())
+    for k in (4, 6):
+        tr.at_frame(k)
+        tr.observe(pose(k))
+    t = se3_exp_np(np.array([0.1, 0.0, -0.05, 0.0, 0.02, 0.0]))
+    tr.move_motion(t)
+    tr.at_frame(7)
+    assert pose_distance(tr.predict(), t @ pose(7))[0] < 1e-9
+    tr.reset_motion([pose(7), pose(8)], [7, 8])
+    tr.at_frame(10)
+    assert pose_distance(tr.predict(), pose(10))[0] < 1e-9
+    tr.at_frame(30)  # a long gap: at most max_prediction_steps steps
+    assert pose_distance(tr.predict(), pose(8 + TrackerConfig().max_prediction_steps))[0] < 1e-9
+    with pytest.raises(ValueError, match="frame indices"):
+        tr.reset_motion([pose(1), pose(2)], [2])
+
+
 def test_tracker_flags_noise_frame_and_keeps_pose(scene_pair):
     cam, c2w0, c2w1, rgb0, d0, rgb1, _ = scene_pair
     tr = DirectTracker(cam, TrackerConfig(num_points=1500))

@@ -27,7 +27,7 @@ from typing import Optional
 import numpy as np
 
 from fmapping.camera import PinholeCamera
-from fmapping.geometry import inv_pose, orthonormalize, pose_distance, scale_about
+from fmapping.geometry import extrapolate_motion, inv_pose, orthonormalize, pose_distance, scale_about
 from fmapping.tracking.direct_align import (
     AlignConfig, AlignResult, DepthSource, Reference, align, build_pyramid, evaluate_pose, image_valid_mask,
     make_reference, reference_from_points, to_gray,
@@ -53,6 +53,8 @@ class TrackerConfig:
     kf_min_inlier_ratio: float = 0.7
     recent_keyframes: int = 5  # kept for re-localisation
     max_velocity_after_loss: int = 2  # consecutive losses after which the prediction stops extrapolating
+    # the constant-velocity prediction over a gap of skipped frames covers at most this many times the last step
+    max_prediction_steps: float = 3.0
 
 
 @dataclass
@@ -86,6 +88,10 @@ class DirectTracker:
         self.reference: Optional[Reference] = None
         self.recent: deque = deque(maxlen=max(1, self.cfg.recent_keyframes))
         self._history: list = []  # last two good poses (c2w)
+        self._frames: list = []  # their frame indices (None: not known; then one frame apart is assumed)
+        # index of the frame being tracked, set by the caller (:meth:`at_frame`): with frames skipped (a live camera
+        # the tracker cannot keep up with) the prediction covers the frames since the last pose, not one step
+        self.frame: Optional[int] = None
         self._losses = 0
         self._last_affine = np.zeros(2)
 
@@ -121,9 +127,17 @@ class DirectTracker:
         self._last_affine = np.zeros(2)
         return ref
 
+    def at_frame(self, index: Optional[int]) -> None:
+        """The frames tracked, observed or predicted next are frame ``index`` of the stream (None: unknown)."""
+        self.frame = None if index is None else int(index)
+
+    def _remember(self, c2w: np.ndarray) -> None:
+        self._history = (self._history + [c2w])[-2:]
+        self._frames = (self._frames + [self.frame])[-2:]
+
     def observe(self, c2w: np.ndarray) -> None:
         """Feed a trusted pose (first frame, another pose source, a refined pose) to the motion model."""
-        self._history = (self._history + [orthonormalize(c2w)])[-2:]
+        self._remember(orthonormalize(c2w))
         self._losses = 0
 
     def correct_last(self, c2w: np.ndarray) -> None:
@@ -135,9 +149,18 @@ class DirectTracker:
     def motion_history(self) -> list:
         return [p.copy() for p in self._history]
 
-    def reset_motion(self, c2w_list: list) -> None:
-        """Replace the motion history (e.g. with mapper-refined poses of the last two frames)."""
+    def reset_motion(self, c2w_list: list, frames: Optional[list] = None) -> None:
+        """Replace the motion history (e.g. with mapper-refined poses of the last two frames), ``frames`` their
+        frame indices (None: not known, one frame apart assumed)."""
         self._history = [orthonormalize(p) for p in c2w_list[-2:]]
+        self._frames = [None] * len(self._history) if frames is None else [int(f) for f in frames[-2:]]
+        if len(self._frames) != len(self._history):
+            raise ValueError(f"reset_motion: {len(c2w_list)} poses but {len(frames or [])} frame indices")
+
+    def move_motion(self, t: np.ndarray) -> None:
+        """Move the motion history's poses to ``t @ c2w`` (their keyframe was moved by ``t``: a bundle
+        adjustment, a loop closure); their frames stay."""
+        self._history = [orthonormalize(t @ p) for p in self._history]
 
     def _references(self) -> list:
         """Every reference held (the recent keyframes and the current one), each once."""
@@ -170,8 +193,21 @@ class DirectTracker:
         last = self._history[-1]
         if len(self._history) < 2 or self._losses >= self.cfg.max_velocity_after_loss:
             return last.copy()
-        prev = self._history[-2]
-        return orthonormalize(last @ (inv_pose(prev) @ last))
+        return orthonormalize(extrapolate_motion(self._history[-2], last, self._step_ratio()))
+
+    def frames_between(self) -> int:
+        """Frames from the older to the newer pose of the motion model (1 when not known)."""
+        prev, last = ([None, None] + self._frames)[-2:]
+        return last - prev if prev is not None and last is not None and last > prev else 1
+
+    def _step_ratio(self) -> float:
+        """Frames from the newest pose to the one being tracked over frames between the two poses of the motion
+        model (1 when a frame index is not known or they do not follow each other), at most
+        ``max_prediction_steps``."""
+        prev, last, now = *self._frames[-2:], self.frame
+        if prev is None or last is None or now is None or not prev < last < now:
+            return 1.0
+        return min((now - last) / (last - prev), self.cfg.max_prediction_steps)
 
     # ------------------------------------------------------------ tracking
     def _check(self, res: AlignResult, c2w: np.ndarray, pred: np.ndarray, ref: Reference) -> str:
@@ -242,7 +278,7 @@ class DirectTracker:
         brightness move on, and the keyframe decision is made."""
         self._losses = 0
         self._last_affine = res.affine
-        self._history = (self._history + [c2w])[-2:]
+        self._remember(c2w)
         return TrackResult(c2w, False, relocalised, self._need_keyframe(res, c2w, ref), res.rmse, res.inlier_ratio,
                            res.visible_ratio, res.iterations, ms, ref.frame_index)
 

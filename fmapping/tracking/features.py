@@ -121,8 +121,11 @@ def klt_window(cfg: KltConfig, width: int) -> int:
 
 
 def _lk(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: KltConfig,
-        guess: Optional[np.ndarray], fb: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Pyramidal Lucas-Kanade from ``img0`` to ``img1`` with the forward-backward check (``fb``): (pts1, ok)."""
+        guess: Optional[np.ndarray], fb: bool = True, fb_guess: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Pyramidal Lucas-Kanade from ``img0`` to ``img1`` with the forward-backward check (``fb``): (pts1, ok).
+    With ``fb_guess`` the backward pass starts where the prior motion of ``guess`` (pts1's starting points),
+    reversed, puts the points, not at zero motion: on a repeating pattern a flow beyond half a period would
+    lock it elsewhere."""
     p0 = np.ascontiguousarray(pts0, np.float32).reshape(-1, 1, 2)
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, cfg.max_iters, 0.01)
     win = klt_window(cfg, img0.shape[1])
@@ -133,7 +136,11 @@ def _lk(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: KltConfig,
     else:
         p1, st, _ = cv2.calcOpticalFlowPyrLK(img0, img1, p0, None, **kw)
     ok = st.reshape(-1) == 1
-    if fb:
+    if fb and fb_guess and guess is not None:  # back from where the same prior motion, reversed, puts the points
+        pb = np.ascontiguousarray(p1 - (np.asarray(guess, np.float32).reshape(-1, 1, 2) - p0), np.float32)
+        pb, stb, _ = cv2.calcOpticalFlowPyrLK(img1, img0, p1, pb, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **kw)
+        ok &= (stb.reshape(-1) == 1) & (np.linalg.norm((pb - p0).reshape(-1, 2), axis=1) < cfg.fb_threshold)
+    elif fb:
         pb, stb, _ = cv2.calcOpticalFlowPyrLK(img1, img0, p1, None, **kw)
         ok &= (stb.reshape(-1) == 1) & (np.linalg.norm((pb - p0).reshape(-1, 2), axis=1) < cfg.fb_threshold)
     p1 = p1.reshape(-1, 2)
@@ -180,19 +187,20 @@ def scale_exposure(img: np.ndarray, gain: float) -> np.ndarray:
 
 def klt_track_gain(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: KltConfig,
                    guess: Optional[np.ndarray] = None, gain: float = 1.0,
-                   fb: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
+                   fb: bool = True, fb_guess: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
     """:func:`klt_track` with ``img1`` taken at ``gain`` times ``img0``'s exposure (a prediction; 1: the
     same). Returns (pts1, ok, the gain the points were tracked under). With ``cfg.gain_compensation``, a
     gain measured at the tracks more than ``cfg.gain_tol`` (and more than the tracks' spread) off the one
     applied is applied instead and the points tracked again from ``guess`` (``cfg.gain_passes`` times at
     most): a first pass far off under the wrong exposure is a worse start than the guess. ``fb`` False:
-    no forward-backward check (half the cost; for a caller that checks the tracks otherwise)."""
+    no forward-backward check (half the cost; for a caller that checks the tracks otherwise). ``fb_guess``: the
+    backward pass starts from ``guess``'s motion reversed (:func:`_lk`)."""
     if len(pts0) == 0:
         return np.zeros((0, 2), np.float32), np.zeros(0, bool), gain
     halvings = klt_halvings(cfg, img0.shape[1])
     if halvings:
-        return _klt_halved(img0, img1, pts0, cfg, guess, gain, fb, halvings)
-    p1, ok = _lk(img0, scale_exposure(img1, gain), pts0, cfg, guess, fb)
+        return _klt_halved(img0, img1, pts0, cfg, guess, gain, fb, halvings, fb_guess)
+    p1, ok = _lk(img0, scale_exposure(img1, gain), pts0, cfg, guess, fb, fb_guess)
     if not cfg.gain_compensation:
         return p1, ok, gain
     win = odd_window(cfg.gain_half_window, img0.shape[1])
@@ -206,7 +214,7 @@ def klt_track_gain(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: Kl
         if abs(r / gain - 1.0) <= max(cfg.gain_tol, spread):
             return p1, ok, gain
         gain = r
-        p1, ok = _lk(img0, scale_exposure(img1, gain), pts0, cfg, guess, fb)
+        p1, ok = _lk(img0, scale_exposure(img1, gain), pts0, cfg, guess, fb, fb_guess)
     return p1, ok, gain
 
 
@@ -229,7 +237,7 @@ def fine_klt_config(cfg: KltConfig, width: int, levels: int = 2) -> KltConfig:
 
 
 def _klt_halved(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: KltConfig, guess: Optional[np.ndarray],
-                gain: float, fb: bool, halvings: int) -> tuple[np.ndarray, np.ndarray, float]:
+                gain: float, fb: bool, halvings: int, fb_guess: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
     """:func:`klt_track_gain` in both images halved ``halvings`` times (``cv2.pyrDown``: pixel ``i`` of the
     halved image is centred on ``2 i + 0.5`` of the full one), positions scaled back to the full size."""
     s = float(2 ** halvings)
@@ -239,7 +247,7 @@ def _klt_halved(img0: np.ndarray, img1: np.ndarray, pts0: np.ndarray, cfg: KltCo
     def down(p):
         return None if p is None else (np.asarray(p, np.float64).reshape(-1, 2) + 0.5) / s - 0.5
 
-    p1, ok, gain = klt_track_gain(img0, img1, down(pts0), replace(cfg, max_width=0), down(guess), gain, fb)
+    p1, ok, gain = klt_track_gain(img0, img1, down(pts0), replace(cfg, max_width=0), down(guess), gain, fb, fb_guess)
     return ((np.asarray(p1, np.float64) + 0.5) * s - 0.5).astype(np.float32), ok, gain
 
 

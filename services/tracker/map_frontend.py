@@ -124,7 +124,7 @@ class MapFrontend:
             own, mapped = self.own_poses.get(target), self._pose_of(target)
             if own is not None and mapped is not None:
                 corr = mapped @ np.linalg.inv(own.c2w)
-                self.tracker.reset_motion([corr @ h for h in hist])
+                self.tracker.move_motion(corr)
                 self.counters.inc("motion_rechained")
             return
         prior = [h for h in (self._pose_of(s) for s in (target - 1, target)) if h is not None]

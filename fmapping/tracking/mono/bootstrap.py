@@ -53,12 +53,12 @@ class Bootstrap:
             corners = detect_corners(gray, c.klt)
             self.store.tracks = Tracks(corners, index,
                                        corner_covariance(gray, corners, c.klt) if c.anisotropic_tracks else None)
-            self._last_gray = gray
+            self._last_gray, self._last_gray_frame = gray, index
             self._c2w0 = orthonormalize(np.asarray(c2w0, np.float64))
             self._hist = {index: (self.store.tracks.tid.copy(), self.store.tracks.uv.copy())}
             return None
         self._buf.append((index, rgb))
-        self._klt(gray)
+        self._klt(gray, index)
         self._hist[index] = (self.store.tracks.tid.copy(), self.store.tracks.uv.copy())
         if len(self._buf) > c.init_max_frames or len(self.store.tracks) < c.init_min_points:
             self.failed = True
@@ -134,10 +134,13 @@ class Bootstrap:
         lids = tr.lid[tr.lid >= 0]
         pts_cam0 = self.store.cam_points(i0, lids, tr.uv_first[tr.lid >= 0])
         self.tracker.set_reference_points(self._buf[0][1], pts_cam0, self._c2w0, i0)
+        self.tracker.at_frame(i0)
         self.tracker.observe(self._c2w0)
         poses = {i0: self._c2w0.copy()}
         for fi, frgb in self._buf[1:-1]:
+            self.tracker.at_frame(fi)
             poses[fi] = self.tracker.track(frgb).c2w
+        self.tracker.at_frame(index)
         r = self.tracker.track(rgb, c2w_guess=self.store.kf_pose[index])
         two_view_vs_photo = pose_distance(self.store.kf_pose[index], r.c2w)[1]
         poses[index] = self.store.kf_pose[index]
@@ -149,7 +152,7 @@ class Bootstrap:
             self.store.rel[fi] = (i0, inv_pose(self._c2w0) @ poses[fi])
         self.store.rel[index] = (index, np.eye(4))
         poses[index] = self.store.kf_pose[index]
-        self.tracker.reset_motion([poses[self._buf[-2][0]], poses[index]])
+        self.tracker.reset_motion([poses[self._buf[-2][0]], poses[index]], [self._buf[-2][0], index])
         self.init_info = {"frame": int(index), "frames": len(self._buf), "points": int(len(sel)),
                           "median_parallax_deg": median_par, "scale": s, "scale_from": how,
                           "two_view_vs_photometric_deg": two_view_vs_photo, "ba_rms_px": rms}

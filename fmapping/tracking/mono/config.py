@@ -53,6 +53,21 @@ class MonoConfig:
     # (bench/results/tracker_cpu/).
     ba_rel_tol: float = 1e-4
     ba_outlier_px: float = 4.0  # observations beyond this after BA are dropped
+    # A track whose landmark reprojects farther than this (pixels at 320 px of width) from it in a new keyframe, at
+    # the keyframe's pose, adds no observation there and starts again from there (as a BA outlier does), unless
+    # more than kf_obs_max_share of the keyframe's tracks are that far (then the pose is what is off). On a
+    # repeating pattern KLT can lock onto the next period and keep the track there, 30 px off; a few dozen such
+    # observations bent a window BA by 15 cm. 0: every track adds its observation (before 2026-12-07).
+    # Offline (fmapping slam) Sim3 ATE: default rooms 0-4 0.62/1.12/0.54/0.66/0.70 -> 0.59/1.11/0.60/0.60/0.62 cm;
+    # TUM fr1_rpy, 6 copies, mean 2.24 -> 2.28 cm; 7-Scenes dev 2.81/3.16/2.95/3.21 -> 2.91/2.91/2.90/3.03 cm
+    # (bench/results/motion_gaps_2026-12-07/)
+    kf_obs_max_px: float = 8.0
+    kf_obs_max_share: float = 0.3
+    # After frames skipped to keep pace (the tracker service at a camera's rate), KLT starts each track where the
+    # frame's predicted pose puts its landmark (MonoFrontend._klt_guess) instead of at its last pixel: the flow
+    # is then two frames' or more, and on a repeating pattern beyond half a period KLT locks onto the next one.
+    # Without skipped frames nothing changes (bench/results/motion_gaps_2026-12-07/)
+    klt_gap_guess: bool = True
     # When the sequence ends, one bundle adjustment of all keyframes (MonoFrontend.final_ba; the first two fixed), at
     # most final_ba_max_nfev iterations: "after_loops" when a loop was closed, "always" or "never". Paired runs
     # (bench/results/final_ba_2026-12-06/, Sim3 ATE): 7-Scenes long walk (17-21 loops) 5.35 / 5.04 / 5.03 ->
@@ -141,6 +156,9 @@ class MonoConfig:
         if not (self.pnp_first_gate_px > 0 and 0.0 <= self.pnp_first_min_share <= 1.0):
             raise ValueError(f"mono.pnp_first_gate_px must be > 0 and mono.pnp_first_min_share in [0, 1], got "
                              f"{self.pnp_first_gate_px} and {self.pnp_first_min_share}")
+        if not self.kf_obs_max_px >= 0 or not 0.0 <= self.kf_obs_max_share <= 1.0:
+            raise ValueError(f"mono.kf_obs_max_px must be >= 0 and mono.kf_obs_max_share in [0, 1], got "
+                             f"{self.kf_obs_max_px}, {self.kf_obs_max_share}")
         if self.loop_ba_defer_frames < 0 or not 0.0 <= self.ba_defer_min_visible <= 1.0:
             raise ValueError(f"mono.loop_ba_defer_frames must be >= 0 and mono.ba_defer_min_visible in [0, 1], got "
                              f"{self.loop_ba_defer_frames} and {self.ba_defer_min_visible}")

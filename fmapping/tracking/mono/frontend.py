@@ -59,6 +59,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         self.store = KeyframeStore(camera, self.cfg)  # tracks, keyframes, landmarks, the BA window
         self._buf: list = []  # bootstrap frames: (index, rgb)
         self._last_gray: Optional[np.ndarray] = None
+        self._last_gray_frame: Optional[int] = None  # the frame of _last_gray (tracks' last pixels)
         self._gain_step = 1.0  # exposure of the last frame over the one before (KLT's prediction)
         self._gain_kf = 1.0  # exposure of the last frame over the keyframe image ``_kf_gray``
         self._kf_index = -1
@@ -97,11 +98,12 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         if self._anchor is not None and index - self._first_index >= 2 * self.cfg.late_anchor_frames:
             self.settle_scale(f"no tracked frame with an anchor pose in the first {2 * self.cfg.late_anchor_frames}")
         self._merge_ba(wait=False)  # a bundle adjustment finished since the last frame: take it first
+        self.tracker.at_frame(index)  # the motion model predicts over the frames skipped since the last one
         gray = to_u8(rgb)
         quick = None
         if self.cfg.frame_pose == "pnp":
             t0 = time.perf_counter()
-            self._klt(gray)
+            self._klt(gray, index, None)
             quick = self._pose_from_tracks(rgb)
             if quick is not None:
                 quick.ms += (time.perf_counter() - t0) * 1000.0
@@ -111,11 +113,11 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         else:
             res = self.tracker.track(rgb)
             if self.cfg.rolling_shutter and not res.lost:
-                hist = self.tracker.motion_history  # [previous frame, this frame]
+                hist = self.tracker.motion_history  # [previous tracked frame, this frame]
                 if len(hist) == 2:
-                    self._step = rotation_step(hist[0], hist[1])
+                    self._step = rotation_step(hist[0], hist[1]) / self.tracker.frames_between()
             if self.cfg.frame_pose != "pnp":
-                self._klt(gray)
+                self._klt(gray, index, None if res.lost else res.c2w)
             if res.lost and self.cfg.pnp_recovery:
                 res = self._recover(rgb, res)
         if res.lost:
@@ -193,12 +195,15 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         self.tracker.rescale(c0, s, frames=kfs)
 
     # ================================================================== internals
-    def _klt(self, gray: np.ndarray) -> None:
+    def _klt(self, gray: np.ndarray, index: Optional[int] = None, c2w: Optional[np.ndarray] = None) -> None:
+        """The tracks into frame ``index`` (``gray``), posed at ``c2w`` when known (else the motion model's
+        prediction guides them after skipped frames: :meth:`_klt_guess`)."""
         tr = self.store.tracks
         if tr is not None and len(tr):
             # exposure: the last step's gain predicts this one's (klt_track_gain measures and corrects it)
-            new, ok, self._gain_step = klt_track_gain(self._last_gray, gray, tr.uv, self.cfg.klt,
-                                                      gain=self._gain_step)
+            guess = self._klt_guess(index, c2w)
+            new, ok, self._gain_step = klt_track_gain(self._last_gray, gray, tr.uv, self.cfg.klt, guess=guess,
+                                                      gain=self._gain_step, fb_guess=guess is not None)
             kf_gray = getattr(self, "_kf_gray", None)
             if self.cfg.klt_from_keyframe and kf_gray is not None and tr.uv_kf is not None:
                 # refine from the keyframe image: positions no longer accumulate frame-to-frame drift
@@ -213,6 +218,32 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
             tr.geo = self._geo(tr.uv)
             tr.keep(ok)
         self._last_gray = gray
+        self._last_gray_frame = index
+
+    def _klt_guess(self, index: Optional[int], c2w: Optional[np.ndarray]) -> Optional[np.ndarray]:
+        """Where the tracks should be in frame ``index`` when frames were skipped since the last one
+        (``MonoConfig.klt_gap_guess``): a track with a landmark at its projection from the frame's pose ``c2w``
+        (None: the motion model's prediction), the others moved by the median of those moves. None (KLT starts
+        at the last pixels) right after a tracked frame or with too few landmarks. A flow of two frames or more
+        on a repeating pattern makes KLT lock onto the next period."""
+        tr = self.store.tracks
+        last = self._last_gray_frame
+        if not self.cfg.klt_gap_guess or index is None or last is None or index - last < 2:
+            return None
+        has = np.flatnonzero(tr.lid >= 0)
+        if len(has) < self.cfg.pnp_min_points:
+            return None
+        w2c = inv_pose(self.tracker.predict() if c2w is None else c2w)
+        x = np.stack([self.store.lm[i] for i in tr.lid[has]]) @ w2c[:3, :3].T + w2c[:3, 3]
+        ok = x[:, 2] > 1e-3
+        if ok.sum() < self.cfg.pnp_min_points:
+            return None
+        cam = self.camera
+        z = np.where(ok, x[:, 2], 1.0)
+        proj = np.stack([cam.fx * x[:, 0] / z + cam.cx, cam.fy * x[:, 1] / z + cam.cy], -1)
+        guess = tr.uv + np.median(proj[ok] - tr.uv[has[ok]], axis=0)
+        guess[has[ok]] = proj[ok]
+        return guess
 
     def _reinit(self, index: int, rgb, gray, c2w: np.ndarray) -> None:
         from fmapping.tracking.direct_align import make_reference
@@ -227,7 +258,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         ref = make_reference(rgb, depth, cam, self.store.kf_pose[index], tcfg.align.levels, tcfg.num_points,
                              tcfg.min_grad, index, blur=tcfg.align.blur)
         self.tracker.push_reference(ref)
-        self.tracker.reset_motion([self.store.kf_pose[index]])
+        self.tracker.reset_motion([self.store.kf_pose[index]], [index])
         self._kf_index = index
         self.store.rel[index] = (index, np.eye(4))
         tr = Tracks(detect_corners(gray, self.cfg.klt).astype(np.float64), index)
@@ -365,8 +396,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
                 self._bg.submit(prob)
         after = self.store.kf_pose[index]
         # move the motion model with the refined keyframe
-        delta = after @ inv_pose(before)
-        self.tracker.reset_motion([delta @ p for p in self.tracker.motion_history])
+        self.tracker.move_motion(after @ inv_pose(before))
         return after
 
     def _merge_ba(self, wait: bool) -> bool:
@@ -387,7 +417,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         moves = {k: self.store.kf_pose[k] @ inv_pose(b) for k, b in before.items()}
         self.tracker.move_references(moves)
         if self._kf_index in moves:
-            self.tracker.reset_motion([moves[self._kf_index] @ p for p in self.tracker.motion_history])
+            self.tracker.move_motion(moves[self._kf_index])
             self._rebuild_reference(dropped)
         self.ba_merges += 1
         if self._loop_ba is not None and self._loop_ba.prob is prob:  # a loop closure's: back to the graph's scale
@@ -396,8 +426,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
             was = self.store.kf_pose[k].copy() if k in self.store.kf_pose else None
             self._after_loop_ba(loop.keyframes, loop.old, loop.graph_size, loop.record)
             if was is not None:  # the motion model moves with the current keyframe (as at a keyframe)
-                d = self.store.kf_pose[k] @ inv_pose(was)
-                self.tracker.reset_motion([d @ p for p in self.tracker.motion_history])
+                self.tracker.move_motion(self.store.kf_pose[k] @ inv_pose(was))
             self._moved_all = True
 
     def _rebuild_reference(self, dropped: set) -> None:

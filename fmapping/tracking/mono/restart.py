@@ -86,8 +86,8 @@ class Restart:
         tr.lid = np.arange(len(world), dtype=np.int64)
         self.store.tracks = tr
         self.store.rel = {index: (index, np.eye(4))}
-        self._last_gray = gray
-        self.tracker.reset_motion([c2w])
+        self._last_gray, self._last_gray_frame = gray, index
+        self.tracker.reset_motion([c2w], [index])
         try:
             self._set_reference(index, rgb, gray)
         except ValueError:

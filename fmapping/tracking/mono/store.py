@@ -12,7 +12,7 @@ import numpy as np
 from fmapping.camera import PinholeCamera
 from fmapping.geometry import inv_pose, scale_about
 from fmapping.tracking.ba import BAResult, bundle_adjust
-from fmapping.tracking.features import triangulate
+from fmapping.tracking.features import at_width, triangulate
 from fmapping.tracking.mono.config import MonoConfig
 
 
@@ -191,6 +191,7 @@ class KeyframeStore:
         self.obs = Observations()  # (kf index, landmark id, u, v)
         self.rel: dict = {}  # frame index -> (keyframe index, inv(c2w_kf) @ c2w)
         self.ba_stats: list = []  # per bundle adjustment: keyframes, points, rms before / after, ms
+        self.stray_restarts = 0  # tracks restarted at a keyframe, their landmark far from them (kf_obs_max_px)
 
     def add_keyframe(self, index: int, rgb: np.ndarray, c2w: np.ndarray) -> None:
         """Frame ``index`` becomes a keyframe at ``c2w``: tracks with a landmark add an observation,
@@ -200,6 +201,7 @@ class KeyframeStore:
         tr = self.tracks
         self.kf_pose[index] = np.asarray(c2w, np.float64).copy()
         self.kf_rgb[index] = rgb
+        self._restart_stray_tracks(index)
         # observations of known landmarks
         has = tr.lid >= 0
         self.obs.extend(index, tr.lid[has], tr.geo[has])
@@ -224,6 +226,32 @@ class KeyframeStore:
         if len(self.window) > c.window:
             old = self.window.pop(0)
             self.kf_rgb.pop(old, None)
+
+    def _restart_stray_tracks(self, index: int) -> int:
+        """Tracks whose landmark reprojects more than ``kf_obs_max_px`` from them at keyframe ``index``'s pose
+        start again from this keyframe (no observation of their landmark here), unless more than
+        ``kf_obs_max_share`` of the tracks with a landmark are that far. Returns how many were restarted."""
+        c, tr = self.cfg, self.tracks
+        has = np.flatnonzero(tr.lid >= 0)
+        if c.kf_obs_max_px <= 0 or not len(has):
+            return 0
+        off = self.reprojection_px(index, tr.lid[has], tr.geo[has])
+        bad = has[off > at_width(c.kf_obs_max_px, self.camera.width)]
+        if not len(bad) or len(bad) > c.kf_obs_max_share * len(has):
+            return 0
+        tr.lid[bad], tr.first_kf[bad], tr.uv_first[bad] = -1, index, tr.geo[bad]
+        self.stray_restarts += len(bad)
+        return len(bad)
+
+    def reprojection_px(self, kf: int, lids: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """Pixel distance (N,) between landmarks ``lids`` projected at keyframe ``kf``'s pose and pixels ``uv``
+        (inf behind the camera)."""
+        w2c = inv_pose(self.kf_pose[kf])
+        x = np.stack([self.lm[i] for i in lids]) @ w2c[:3, :3].T + w2c[:3, 3]
+        z = np.maximum(x[:, 2], 1e-9)
+        cam = self.camera
+        d = np.hypot(cam.fx * x[:, 0] / z + cam.cx - uv[:, 0], cam.fy * x[:, 1] / z + cam.cy - uv[:, 1])
+        return np.where(x[:, 2] > 1e-3, d, np.inf)
 
     def cam_points(self, kf: int, lids: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """Camera-frame points at observed pixels ``uv`` with the depth of landmarks ``lids`` in keyframe ``kf``."""
