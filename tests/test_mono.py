@@ -408,25 +408,34 @@ def test_observations_table_matches_a_list_of_tuples():
         tab.extend(0, [1, 2], [[0.0, 0.0]])
 
 
+def _points_ahead(seed: int):
+    """A 320x240 camera and 40 points 3.5-4.5 m in front of it."""
+    from fmapping.camera import PinholeCamera
+
+    rng = np.random.default_rng(seed)
+    world = np.c_[rng.uniform(-1.5, 1.5, 40), rng.uniform(-1.0, 1.0, 40), rng.uniform(3.5, 4.5, 40)]
+    return PinholeCamera(250.0, 250.0, 159.5, 119.5, 320, 240), world
+
+
+def _slid(x: float) -> np.ndarray:
+    """The camera-to-world pose of a camera slid ``x`` metres along the x axis."""
+    p = np.eye(4)
+    p[0, 3] = x
+    return p
+
+
 def test_a_track_whose_landmark_a_late_bundle_adjustment_drops_restarts_at_its_keyframe_pixel():
     """With the BA in the worker (``ba_thread``) its solution is merged frames after its keyframe. A track whose
     landmark the BA drops as an outlier is triangulated again from that keyframe: it must restart at its pixel in
     the keyframe, not in the frame of the merge, or the next keyframe pairs the keyframe's pose with another
     frame's pixel. Exact projections of known points: the re-triangulated point is the true one; restarted at the
     merge frame's pixel instead (what the store did), it is tens of centimetres off or not made at all."""
-    from fmapping.camera import PinholeCamera
     from fmapping.tracking.ba import BAResult
     from fmapping.tracking.mono import MonoConfig
     from fmapping.tracking.mono.store import KeyframeStore, Tracks
 
-    cam = PinholeCamera(250.0, 250.0, 159.5, 119.5, 320, 240)
-    rng = np.random.default_rng(0)
-    world = np.c_[rng.uniform(-1.5, 1.5, 40), rng.uniform(-1.0, 1.0, 40), rng.uniform(3.5, 4.5, 40)]
-
-    def pose(x):
-        p = np.eye(4)
-        p[0, 3] = x
-        return p
+    cam, world = _points_ahead(0)
+    pose = _slid
 
     def project(c2w):
         return cam.world_to_pixels(c2w, world)[0]
@@ -465,19 +474,11 @@ def test_a_track_far_from_its_landmark_at_a_keyframe_restarts_there_and_adds_no_
     next keyframe it must not add that observation (a few dozen of them bent a window BA by 15 cm): it starts
     again from the keyframe, as a BA outlier does. Exact projections of known points, 6 tracks moved 30 px:
     they restart, the others observe; a keyframe pose off by so much that most tracks are far restarts none."""
-    from fmapping.camera import PinholeCamera
     from fmapping.tracking.mono import MonoConfig
     from fmapping.tracking.mono.store import KeyframeStore, Tracks
 
-    cam = PinholeCamera(250.0, 250.0, 159.5, 119.5, 320, 240)
-    rng = np.random.default_rng(1)
-    world = np.c_[rng.uniform(-1.5, 1.5, 40), rng.uniform(-1.0, 1.0, 40), rng.uniform(3.5, 4.5, 40)]
-
-    def pose(x):
-        p = np.eye(4)
-        p[0, 3] = x
-        return p
-
+    cam, world = _points_ahead(1)
+    pose = _slid
     stray = np.arange(6)
     for kf_pose, restarted in ((pose(0.3), set(stray.tolist())), (pose(0.3) @ pose(0.5), set())):
         st = KeyframeStore(cam, MonoConfig())
