@@ -233,14 +233,11 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         has = np.flatnonzero(tr.lid >= 0)
         if len(has) < self.cfg.pnp_min_points:
             return None
-        w2c = inv_pose(self.tracker.predict() if c2w is None else c2w)
-        x = np.stack([self.store.lm[i] for i in tr.lid[has]]) @ w2c[:3, :3].T + w2c[:3, 3]
-        ok = x[:, 2] > 1e-3
+        proj, z = self.camera.world_to_pixels(self.tracker.predict() if c2w is None else c2w,
+                                              np.stack([self.store.lm[i] for i in tr.lid[has]]))
+        ok = z > 1e-3
         if ok.sum() < self.cfg.pnp_min_points:
             return None
-        cam = self.camera
-        z = np.where(ok, x[:, 2], 1.0)
-        proj = np.stack([cam.fx * x[:, 0] / z + cam.cx, cam.fy * x[:, 1] / z + cam.cy], -1)
         guess = tr.uv + np.median(proj[ok] - tr.uv[has[ok]], axis=0)
         guess[has[ok]] = proj[ok]
         return guess

@@ -246,12 +246,8 @@ class KeyframeStore:
     def reprojection_px(self, kf: int, lids: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """Pixel distance (N,) between landmarks ``lids`` projected at keyframe ``kf``'s pose and pixels ``uv``
         (inf behind the camera)."""
-        w2c = inv_pose(self.kf_pose[kf])
-        x = np.stack([self.lm[i] for i in lids]) @ w2c[:3, :3].T + w2c[:3, 3]
-        z = np.maximum(x[:, 2], 1e-9)
-        cam = self.camera
-        d = np.hypot(cam.fx * x[:, 0] / z + cam.cx - uv[:, 0], cam.fy * x[:, 1] / z + cam.cy - uv[:, 1])
-        return np.where(x[:, 2] > 1e-3, d, np.inf)
+        proj, z = self.camera.world_to_pixels(self.kf_pose[kf], np.stack([self.lm[i] for i in lids]))
+        return np.where(z > 1e-3, np.linalg.norm(proj - uv, axis=1), np.inf)
 
     def cam_points(self, kf: int, lids: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """Camera-frame points at observed pixels ``uv`` with the depth of landmarks ``lids`` in keyframe ``kf``."""
