@@ -72,7 +72,6 @@ from services.tracker.resume_state import StateWriter, load_resume_state
 log = logging.getLogger("fmapping.tracker")
 
 
-
 @dataclass
 class TrackerServiceOptions:
     max_buffer: int = 64  # frames waiting for a map / a reference (drop-oldest beyond)
@@ -437,9 +436,9 @@ class TrackerCore(MapFrontend, ServiceCore):
             out += self._publish(ups)
             self._save_state()
             self._log_events(seq, fe.loops[loops:], fe.loops_refused[refused:], fe.reinits[reinits:])
-            self.counters.set("loop_closures", len(sess.frontend.loops))
-            self.counters.set("keyframes_deferred", sess.frontend.keyframes_deferred)
-            self.counters.set("frames_posed_by_pnp", sess.frontend.frames_pnp)  # (--frame-pose pnp)
+            self.counters.set("loop_closures", len(fe.loops))
+            self.counters.set("keyframes_deferred", fe.keyframes_deferred)
+            self.counters.set("frames_posed_by_pnp", fe.frames_pnp)  # (--frame-pose pnp)
             self.counters.set("frames_interpolated", sess.interpolated)
         self.counters.set("waiting_frames", len(self.waiting))
         return out

@@ -227,21 +227,19 @@ class KeyframeStore:
             old = self.window.pop(0)
             self.kf_rgb.pop(old, None)
 
-    def _restart_stray_tracks(self, index: int) -> int:
+    def _restart_stray_tracks(self, index: int) -> None:
         """Tracks whose landmark reprojects more than ``kf_obs_max_px`` from them at keyframe ``index``'s pose
-        start again from this keyframe (no observation of their landmark here), unless more than
-        ``kf_obs_max_share`` of the tracks with a landmark are that far. Returns how many were restarted."""
+        start again from this keyframe (no observation of their landmark here; counted in ``stray_restarts``),
+        unless more than ``kf_obs_max_share`` of the tracks with a landmark are that far."""
         c, tr = self.cfg, self.tracks
         has = np.flatnonzero(tr.lid >= 0)
         if c.kf_obs_max_px <= 0 or not len(has):
-            return 0
+            return
         off = self.reprojection_px(index, tr.lid[has], tr.geo[has])
         bad = has[off > at_width(c.kf_obs_max_px, self.camera.width)]
-        if not len(bad) or len(bad) > c.kf_obs_max_share * len(has):
-            return 0
-        tr.lid[bad], tr.first_kf[bad], tr.uv_first[bad] = -1, index, tr.geo[bad]
-        self.stray_restarts += len(bad)
-        return len(bad)
+        if len(bad) and len(bad) <= c.kf_obs_max_share * len(has):
+            tr.lid[bad], tr.first_kf[bad], tr.uv_first[bad] = -1, index, tr.geo[bad]
+            self.stray_restarts += len(bad)
 
     def reprojection_px(self, kf: int, lids: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """Pixel distance (N,) between landmarks ``lids`` projected at keyframe ``kf``'s pose and pixels ``uv``
