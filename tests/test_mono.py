@@ -366,28 +366,35 @@ def test_depths_seen_are_the_camera_depths_of_a_keyframes_landmarks():
 
 def test_observations_table_matches_a_list_of_tuples():
     """The store's observation table against the plain list of ``(keyframe, landmark, u, v)`` tuples it
-    replaced, under random appends, drops and in-place pixel edits: rows, per-keyframe lookups and each
-    landmark's first keyframe agree exactly."""
+    replaced, under random appends, drops and in-place pixel edits: rows, per-keyframe lookups, each
+    landmark's first keyframe and each row's whitening matrix (the identity unless given) agree exactly."""
     from fmapping.tracking.mono.store import Observations
 
     rng = np.random.default_rng(3)
     ref: list = []
+    ref_wh: list = []
     tab = Observations()
     for step in range(60):
         kf = step * 5
         n = int(rng.integers(0, 40))
         lids = rng.integers(0, 300, n)
         uv = rng.normal(size=(n, 2)) * 100
+        wh = np.tile(np.eye(2), (n, 1, 1))
         if step % 7 == 3 and n:  # one by one, as the triangulation adds them
             for i, (u, v) in zip(lids, uv):
                 tab.append(kf, int(i), float(u), float(v))
+        elif step % 2:
+            wh = rng.normal(size=(n, 2, 2))
+            tab.extend(kf, lids, uv, wh)
         else:
             tab.extend(kf, lids, uv)
         ref += [(kf, int(i), float(u), float(v)) for i, (u, v) in zip(lids, uv)]
+        ref_wh += list(wh)
         if step % 5 == 4 and ref:  # a bundle adjustment drops outlying pairs
             pick = rng.choice(len(ref), size=min(15, len(ref)), replace=False)
             bad = {(ref[j][0], ref[j][1]) for j in pick}
             tab.drop(bad)
+            ref_wh = [w for o, w in zip(ref, ref_wh) if (o[0], o[1]) not in bad]
             ref = [o for o in ref if (o[0], o[1]) not in bad]
         if step == 30:  # pixels unrolled in place for one keyframe
             m = tab.kf == kf
@@ -396,6 +403,7 @@ def test_observations_table_matches_a_list_of_tuples():
         assert len(tab) == len(ref)
     assert list(tab) == ref
     np.testing.assert_array_equal(tab.rows(), np.array(ref, np.float64))
+    np.testing.assert_array_equal(tab.whiten, np.stack(ref_wh))
     first: dict = {}
     for k, i, _, _ in ref:
         first.setdefault(i, k)
@@ -504,6 +512,51 @@ def test_a_track_far_from_its_landmark_at_a_keyframe_restarts_there_and_adds_no_
     tr.lid = np.arange(len(world))
     st.add_keyframe(10, np.zeros((240, 320, 3), np.uint8), pose(0.3))
     assert len(st.obs.of_keyframe(10)[0]) == len(world)
+
+
+def test_keyframe_observations_on_stripes_are_whitened_along_them_and_the_ba_problem_carries_that():
+    """``ba_anisotropic``: an observation made at a keyframe is weighed by its corner in that keyframe's image. On
+    horizontal stripes (the left half) the structure tensor has no eigenvalue along x, where KLT cannot see
+    motion: the whitening there is diag(1 / sqrt(cap), 1), 0.1 along the stripe for the cap of 100; on strong
+    isotropic texture (the right half) it stays near the identity, and a track's first keyframe keeps the identity
+    (its corner was found there). The window's BA problem carries each row's matrix; off, everything is the
+    identity as before."""
+    import cv2
+
+    from fmapping.tracking.mono import MonoConfig
+    from fmapping.tracking.mono.store import KeyframeStore, Tracks
+
+    cam, world = _points_ahead(2)
+    pose = _slid
+    v = np.arange(240, dtype=np.float32)[:, None]
+    img = np.repeat((128 + 80 * np.sin(2 * np.pi * v / 12.0)) * np.ones((1, 320), np.float32), 1, 1)
+    noise = cv2.GaussianBlur(np.random.default_rng(0).normal(0, 1, (240, 320)).astype(np.float32), (0, 0), 1.5)
+    img[:, 160:] = 128 + 60 * noise[:, 160:] / noise.std()
+    rgb = np.repeat(np.clip(img, 0, 255).astype(np.uint8)[..., None], 3, 2)
+    uv = cam.world_to_pixels(pose(0.3), world)[0]
+    inside = (uv[:, 0] > 12) & (uv[:, 0] < 308) & (uv[:, 1] > 12) & (uv[:, 1] < 228) & (np.abs(uv[:, 0] - 160) > 12)
+    for on in (True, False):
+        st = KeyframeStore(cam, MonoConfig(ba_anisotropic=on))
+        st.kf_pose, st.lm, st.window = {0: pose(0.0)}, list(world), [0]
+        st.obs.extend(0, np.arange(len(world)), cam.world_to_pixels(pose(0.0), world)[0])
+        tr = st.tracks = Tracks(uv, 0)
+        tr.lid = np.arange(len(world))
+        st.add_keyframe(10, rgb, pose(0.3))
+        at10 = st.obs.kf == 10
+        lid, wh = st.obs.lid[at10], st.obs.whiten[at10]
+        np.testing.assert_array_equal(lid, np.arange(len(world)))
+        np.testing.assert_array_equal(st.obs.whiten[~at10], np.tile(np.eye(2), ((~at10).sum(), 1, 1)))
+        if not on:
+            np.testing.assert_array_equal(wh, np.tile(np.eye(2), (len(world), 1, 1)))
+            assert st.ba_problem(window=[0, 10]).whiten is None
+            continue
+        left, right = inside & (uv[:, 0] < 160), inside & (uv[:, 0] > 160)
+        assert left.sum() >= 5 and right.sum() >= 5
+        np.testing.assert_allclose(wh[left], np.tile(np.diag([0.1, 1.0]), (left.sum(), 1, 1)), atol=0.02)
+        assert (np.linalg.eigvalsh(wh[right])[:, 0] > 0.4).all()
+        prob = st.ba_problem(window=[0, 10])
+        rows = {(int(k), int(i)): w for k, i, w in zip(st.obs.kf, st.obs.lid, st.obs.whiten)}
+        np.testing.assert_array_equal(prob.whiten, np.stack([rows[int(k), int(i)] for k, i in prob.obs[:, :2]]))
 
 
 @pytest.mark.parametrize("guided", [False, True])

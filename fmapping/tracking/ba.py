@@ -69,6 +69,13 @@ def reprojection_jacobians(camera: PinholeCamera, t_cw: np.ndarray, x: np.ndarra
     return j_pose, j_point
 
 
+def whitening(cov: np.ndarray) -> np.ndarray:
+    """``cov^(-1/2)`` (N, 2, 2) of pixel error covariances ``cov`` (N, 2, 2, symmetric positive definite): the
+    matrix that turns a residual into one of unit covariance (:func:`bundle_adjust`'s ``whiten``)."""
+    w, vec = np.linalg.eigh(np.asarray(cov, np.float64).reshape(-1, 2, 2))
+    return np.einsum("nij,nj,nkj->nik", vec, 1.0 / np.sqrt(np.maximum(w, 1e-12)), vec)
+
+
 def _huber_w(r2: np.ndarray, k: float) -> np.ndarray:
     n = np.sqrt(r2)
     return np.where(n <= k, 1.0, k / np.maximum(n, 1e-12))
@@ -284,13 +291,16 @@ def damped_step(ne: NormalEquations, lam: float) -> tuple[np.ndarray, np.ndarray
 
 def bundle_adjust(camera: PinholeCamera, poses_c2w: Sequence[np.ndarray], fixed: Sequence[int], points: np.ndarray,
                   obs_kf: np.ndarray, obs_pt: np.ndarray, obs_uv: np.ndarray, huber_px: float = 1.5,
-                  max_nfev: int = 15, rel_tol: float = 1e-9) -> BAResult:
+                  max_nfev: int = 15, rel_tol: float = 1e-9, whiten: Optional[np.ndarray] = None) -> BAResult:
     """Refine the non-``fixed`` poses and all ``points`` from observations (keyframe index, point index, pixel).
 
     Levenberg-Marquardt with Huber weights (IRLS); each iteration eliminates the points
     (:func:`damped_step`) and solves the small dense pose system. ``max_nfev`` bounds the
     number of residual evaluations; the solve also stops after an accepted step that lowers the
-    robust cost by less than ``rel_tol`` of it.
+    robust cost by less than ``rel_tol`` of it. ``whiten`` (O, 2, 2), when given, multiplies each
+    observation's residual and Jacobians (``L`` with ``L^T L`` its pixel error's information,
+    :func:`whitening`): the Huber weights, the cost and ``residual_px`` are then of the whitened
+    residuals, in pixels of the best-measured direction.
     """
     k = len(poses_c2w)
     obs_kf = np.asarray(obs_kf, np.int64)
@@ -305,9 +315,16 @@ def bundle_adjust(camera: PinholeCamera, poses_c2w: Sequence[np.ndarray], fixed:
     oc = col[obs_kf]  # free-pose column of each observation (-1: fixed)
     layout = ObservationLayout(oc, obs_pt, len(free), len(x))
 
+    if whiten is not None:
+        whiten = np.asarray(whiten, np.float64).reshape(-1, 2, 2)
+        if len(whiten) != len(obs_uv):
+            raise ValueError(f"bundle_adjust: {len(obs_uv)} observations but {len(whiten)} whitening matrices")
+
     def residuals(t_, x_):
         uv, _, _ = _project(camera, t_[obs_kf], x_[obs_pt])
         r = uv - obs_uv
+        if whiten is not None:
+            r = np.einsum("nij,nj->ni", whiten, r)
         return r, (r * r).sum(1)
 
     r, r2 = residuals(t, x)
@@ -316,6 +333,8 @@ def bundle_adjust(camera: PinholeCamera, poses_c2w: Sequence[np.ndarray], fixed:
     nfev = 1
     while nfev < max_nfev:
         jp, jx = reprojection_jacobians(camera, t[obs_kf], x[obs_pt])
+        if whiten is not None:
+            jp, jx = whiten @ jp, whiten @ jx
         ne = normal_equations(jp, jx, r, _huber_w(r2, huber_px), oc, obs_pt, len(free), len(x), layout)
         improved = False
         while nfev < max_nfev:

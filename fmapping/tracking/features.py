@@ -373,6 +373,14 @@ def corner_covariance(gray: np.ndarray, uv: np.ndarray, cfg: KltConfig, cap: flo
     error there is systematic, not noise. On a widened synthetic room whose first frames see a striped,
     nearly planar wall, such points pulled the two-view translation 25-56 deg off the true direction
     (bench/results/anisotropic_tracks/)."""
+    w, vec = np.linalg.eigh(structure_tensor(gray, uv, cfg))  # ascending eigenvalues
+    var = np.clip(w[:, 1:2] / np.maximum(w, 1e-12), 1.0, cap)
+    return np.einsum("nij,nj,nkj->nik", vec, var, vec)
+
+
+def structure_tensor(gray: np.ndarray, uv: np.ndarray, cfg: KltConfig) -> np.ndarray:
+    """The structure tensor ``G`` (N, 2, 2) of ``gray`` at pixels ``uv`` (N, 2): the image gradient's outer
+    product (grey levels per pixel, squared) summed over the LK window (:func:`klt_window`) around each."""
     g = np.asarray(gray, np.float32)
     ix = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8.0
     iy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 8.0
@@ -382,9 +390,7 @@ def corner_covariance(gray: np.ndarray, uv: np.ndarray, cfg: KltConfig, cap: flo
     u = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, g.shape[1] - 1)
     v = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, g.shape[0] - 1)
     tensor = np.stack([np.stack([sxx[v, u], sxy[v, u]], -1), np.stack([sxy[v, u], syy[v, u]], -1)], -2)
-    w, vec = np.linalg.eigh(tensor.astype(np.float64))  # ascending eigenvalues
-    var = np.clip(w[:, 1:2] / np.maximum(w, 1e-12), 1.0, cap)
-    return np.einsum("nij,nj,nkj->nik", vec, var, vec)
+    return tensor.astype(np.float64)
 
 
 def two_view_init(camera: PinholeCamera, uv_a: np.ndarray, uv_b: np.ndarray, ransac_px: float = 1.0,

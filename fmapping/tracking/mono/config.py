@@ -53,6 +53,16 @@ class MonoConfig:
     # (bench/results/tracker_cpu/).
     ba_rel_tol: float = 1e-4
     ba_outlier_px: float = 4.0  # observations beyond this after BA are dropped
+    # Weigh each keyframe observation's pixel error by its corner in that keyframe (KeyframeStore._whitening):
+    # variance 1 + ba_anisotropic_noise / lambda along each eigenvector of the structure tensor (grey
+    # levels per pixel, squared, summed over the LK window), at most ba_anisotropic_cap. On a stripe KLT cannot see
+    # motion along it; after skipped frames tracks that slid along stripes bent window BAs by centimetres (2 of 64
+    # skip patterns ended at 44 cm). Weighing by the eigenvalues' ratio alone (the bootstrap's corner_covariance)
+    # also discounts well-measured textured corners and cost synthetic room 3 1.3 cm offline
+    # (bench/results/anisotropic_ba_2026-12-07/)
+    ba_anisotropic: bool = True
+    ba_anisotropic_noise: float = 50.0
+    ba_anisotropic_cap: float = 100.0
     # A track whose landmark reprojects farther than this (pixels at 320 px of width) from it in a new keyframe, at
     # the keyframe's pose, adds no observation there and starts again from there (as a BA outlier does), unless
     # more than kf_obs_max_share of the keyframe's tracks are that far (then the pose is what is off). On a
@@ -156,6 +166,9 @@ class MonoConfig:
         if not (self.pnp_first_gate_px > 0 and 0.0 <= self.pnp_first_min_share <= 1.0):
             raise ValueError(f"mono.pnp_first_gate_px must be > 0 and mono.pnp_first_min_share in [0, 1], got "
                              f"{self.pnp_first_gate_px} and {self.pnp_first_min_share}")
+        if not (self.ba_anisotropic_noise >= 0 and self.ba_anisotropic_cap >= 1):
+            raise ValueError(f"mono.ba_anisotropic_noise must be >= 0 and mono.ba_anisotropic_cap >= 1, got "
+                             f"{self.ba_anisotropic_noise}, {self.ba_anisotropic_cap}")
         if not self.kf_obs_max_px >= 0 or not 0.0 <= self.kf_obs_max_share <= 1.0:
             raise ValueError(f"mono.kf_obs_max_px must be >= 0 and mono.kf_obs_max_share in [0, 1], got "
                              f"{self.kf_obs_max_px}, {self.kf_obs_max_share}")

@@ -378,7 +378,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         c = self.cfg
         self._moved_all = False  # (a loop's bundle adjustment merged just below sets it again)
         c2w = self._merge_moving(c2w)  # one bundle adjustment in flight at a time; the store changes now
-        self.store.add_keyframe(index, rgb, c2w)
+        self.store.add_keyframe(index, rgb, c2w, gray)
         before = self.store.kf_pose[index].copy()
         if c.ba and self._bg is None:
             self.store.run_ba()

@@ -12,7 +12,7 @@ import numpy as np
 from fmapping.camera import PinholeCamera
 from fmapping.geometry import inv_pose, scale_about
 from fmapping.tracking.ba import BAResult, bundle_adjust
-from fmapping.tracking.features import at_width, triangulate
+from fmapping.tracking.features import at_width, structure_tensor, to_u8, triangulate
 from fmapping.tracking.mono.config import MonoConfig
 
 
@@ -91,12 +91,14 @@ class Observations:
     were made, as arrays that grow in place. They accumulate over the sequence (25k at 1,000 frames): a Python
     list of tuples cost every keyframe a conversion of all of them and the loop detection a scan per candidate;
     here those are vectorised over the arrays. ``kf``, ``lid`` and ``uv`` are views of the rows (writing ``uv``
-    writes the table); iterating yields the rows as tuples."""
+    writes the table); iterating yields the rows as tuples. Each row also has the 2x2 matrix that whitens its
+    pixel error (``whiten``, :func:`~fmapping.tracking.ba.whitening`; the identity unless given)."""
 
     def __init__(self):
         self._kf = np.zeros(0, np.int64)
         self._lid = np.zeros(0, np.int64)
         self._uv = np.zeros((0, 2), np.float64)
+        self._wh = np.zeros((0, 2, 2), np.float64)
         self._n = 0
 
     def __len__(self) -> int:
@@ -114,25 +116,33 @@ class Observations:
     def uv(self) -> np.ndarray:
         return self._uv[: self._n]
 
+    @property
+    def whiten(self) -> np.ndarray:
+        return self._wh[: self._n]
+
     def __iter__(self):
         return iter([(int(k), int(i), float(u), float(v)) for k, i, (u, v) in zip(self.kf, self.lid, self.uv)])
 
-    def extend(self, kf, lid, uv) -> None:
-        """Append rows: keyframes ``kf`` (an int or one per row), landmarks ``lid`` (M,), pixels ``uv`` (M, 2)."""
+    def extend(self, kf, lid, uv, whiten: Optional[np.ndarray] = None) -> None:
+        """Append rows: keyframes ``kf`` (an int or one per row), landmarks ``lid`` (M,), pixels ``uv`` (M, 2),
+        their pixel errors' whitening matrices ``whiten`` (M, 2, 2; default the identity)."""
         lid = np.asarray(lid, np.int64).reshape(-1)
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
         m = len(lid)
-        if len(uv) != m:
-            raise ValueError(f"Observations.extend: {m} landmarks but {len(uv)} pixels")
+        if len(uv) != m or (whiten is not None and len(whiten) != m):
+            raise ValueError(f"Observations.extend: {m} landmarks but {len(uv)} pixels"
+                             + ("" if whiten is None else f" and {len(whiten)} whitening matrices"))
         end = self._n + m
         if end > len(self._kf):  # amortised growth: the arrays at least double
             cap = max(end, 2 * len(self._kf), 256)
             self._kf = np.resize(self._kf, cap)
             self._lid = np.resize(self._lid, cap)
             self._uv = np.resize(self._uv, (cap, 2))
+            self._wh = np.resize(self._wh, (cap, 2, 2))
         self._kf[self._n:end] = kf
         self._lid[self._n:end] = lid
         self._uv[self._n:end] = uv
+        self._wh[self._n:end] = np.eye(2) if whiten is None else whiten
         self._n = end
 
     def append(self, kf: int, lid: int, u: float, v: float) -> None:
@@ -150,8 +160,8 @@ class Observations:
     def keep(self, mask: np.ndarray) -> None:
         """Keep only the rows where ``mask`` (N,) is true, in their order."""
         mask = np.asarray(mask, bool)
-        kf, lid, uv = self.kf[mask], self.lid[mask], self.uv[mask]
-        self._kf, self._lid, self._uv, self._n = kf.copy(), lid.copy(), uv.copy(), len(kf)
+        kf, lid, uv, wh = self.kf[mask], self.lid[mask], self.uv[mask], self.whiten[mask]
+        self._kf, self._lid, self._uv, self._wh, self._n = kf.copy(), lid.copy(), uv.copy(), wh.copy(), len(kf)
 
     def drop(self, pairs) -> None:
         """Drop every row whose (keyframe, landmark id) is in ``pairs``."""
@@ -193,18 +203,20 @@ class KeyframeStore:
         self.ba_stats: list = []  # per bundle adjustment: keyframes, points, rms before / after, ms
         self.stray_restarts = 0  # tracks restarted at a keyframe, their landmark far from them (kf_obs_max_px)
 
-    def add_keyframe(self, index: int, rgb: np.ndarray, c2w: np.ndarray) -> None:
+    def add_keyframe(self, index: int, rgb: np.ndarray, c2w: np.ndarray, gray: Optional[np.ndarray] = None) -> None:
         """Frame ``index`` becomes a keyframe at ``c2w``: tracks with a landmark add an observation,
         the others are triangulated between their first keyframe and this one; it joins the BA
-        window (the oldest keyframe leaves it, with its image)."""
+        window (the oldest keyframe leaves it, with its image). With ``ba_anisotropic`` the observations made
+        here are whitened by the shape of their corner in this image (``gray``, made from ``rgb`` when not given)."""
         c = self.cfg
         tr = self.tracks
         self.kf_pose[index] = np.asarray(c2w, np.float64).copy()
         self.kf_rgb[index] = rgb
         self._restart_stray_tracks(index)
+        wh = self._whitening(to_u8(rgb) if gray is None and c.ba_anisotropic else gray)
         # observations of known landmarks
         has = tr.lid >= 0
-        self.obs.extend(index, tr.lid[has], tr.geo[has])
+        self.obs.extend(index, tr.lid[has], tr.geo[has], None if wh is None else wh[has])
         # triangulate the others between their first keyframe and this one
         for kf in np.unique(tr.first_kf[~has]):
             if kf not in self.kf_pose or kf == index:
@@ -221,11 +233,28 @@ class KeyframeStore:
             rows_kf[0::2], rows_kf[1::2] = int(kf), index
             rows_uv = np.empty((2 * len(sel), 2))
             rows_uv[0::2], rows_uv[1::2] = tr.uv_first[sel], tr.geo[sel]
-            self.obs.extend(rows_kf, np.repeat(lids, 2), rows_uv)
+            rows_wh = None
+            if wh is not None:  # a track's first pixel is where its corner was found: the identity there
+                rows_wh = np.tile(np.eye(2), (2 * len(sel), 1, 1))
+                rows_wh[1::2] = wh[sel]
+            self.obs.extend(rows_kf, np.repeat(lids, 2), rows_uv, rows_wh)
         self.window.append(index)
         if len(self.window) > c.window:
             old = self.window.pop(0)
             self.kf_rgb.pop(old, None)
+
+    def _whitening(self, gray: Optional[np.ndarray]) -> Optional[np.ndarray]:
+        """The whitening matrices (N, 2, 2) of the tracks' pixel errors in keyframe image ``gray``; None when
+        ``ba_anisotropic`` is off. Each direction's variance is ``1 + ba_anisotropic_noise / lambda`` for the
+        structure tensor's eigenvalue ``lambda`` along it (:func:`~fmapping.tracking.features.structure_tensor`),
+        at most ``ba_anisotropic_cap``: LK's error from image noise is ``sigma^2 G^-1``, the 1 is the floor every
+        track has. A textured corner stays at the identity, a stripe is discounted along itself."""
+        c, tr = self.cfg, self.tracks
+        if not c.ba_anisotropic or gray is None or not len(tr):
+            return None
+        w, vec = np.linalg.eigh(structure_tensor(gray, tr.uv, c.klt))
+        var = np.clip(1.0 + c.ba_anisotropic_noise / np.maximum(w, 1e-12), 1.0, c.ba_anisotropic_cap)
+        return np.einsum("nij,nj,nkj->nik", vec, 1.0 / np.sqrt(var), vec)
 
     def _restart_stray_tracks(self, index: int) -> None:
         """Tracks whose landmark reprojects more than ``kf_obs_max_px`` from them at keyframe ``index``'s pose
@@ -334,7 +363,7 @@ class KeyframeStore:
         win = list(self.window if window is None else window)
         if not len(self.obs):
             return None
-        obs = self.obs.rows()
+        obs, wh = self.obs.rows(), self.obs.whiten
         kf_of = obs[:, 0].astype(np.int64)
         inwin = np.isin(kf_of, win)
         extra: list = []
@@ -346,13 +375,13 @@ class KeyframeStore:
             older = np.unique(kf_of[seen & ~inwin])
             extra = [int(k) for k in older[::-1][: c.ba_fixed_observers] if int(k) in self.kf_pose]
             keep = inwin | (seen & np.isin(kf_of, extra))
-        obs = obs[keep]
+        obs, wh = obs[keep], wh[keep]
         if len(obs) == 0:
             return None
         lids, inv = np.unique(obs[:, 1].astype(np.int64), return_inverse=True)
         counts = np.bincount(inv)
         keep = counts[inv] >= 2
-        obs, inv = obs[keep], inv[keep]
+        obs, inv, wh = obs[keep], inv[keep], wh[keep]
         lids, inv = np.unique(obs[:, 1].astype(np.int64), return_inverse=True)
         if len(lids) < 10:
             return None
@@ -363,7 +392,8 @@ class KeyframeStore:
         fixed += list(range(len(win), len(win) + len(extra)))
         return BAProblem(win, extra, [self.kf_pose[k].copy() for k in win + extra], fixed, lids,
                          np.stack([self.lm[i] for i in lids]), pose_of,
-                         inv, obs, c.ba_huber_px, c.ba_max_nfev if max_nfev is None else max_nfev, c.ba_rel_tol)
+                         inv, obs, c.ba_huber_px, c.ba_max_nfev if max_nfev is None else max_nfev, c.ba_rel_tol,
+                         wh if c.ba_anisotropic else None)
 
     def apply_ba(self, prob: "BAProblem", res: BAResult) -> set:
         """Take the solution ``res`` of ``prob``: keyframe poses and landmarks, outlying observations
@@ -416,6 +446,7 @@ class BAProblem:
     huber_px: float
     max_nfev: int
     rel_tol: float = 1e-9  # stop once a step lowers the cost by less than this fraction (MonoConfig.ba_rel_tol)
+    whiten: Optional[np.ndarray] = None  # (O, 2, 2) per observation (MonoConfig.ba_anisotropic), None: isotropic
 
 
 def solve_ba_problem(camera: PinholeCamera, prob: BAProblem) -> BAResult:
@@ -423,6 +454,6 @@ def solve_ba_problem(camera: PinholeCamera, prob: BAProblem) -> BAResult:
     run in another thread. ``res.ms`` is its wall time."""
     t0 = time.perf_counter()
     res = bundle_adjust(camera, prob.poses, prob.fixed, prob.points, prob.obs_pose, prob.obs_point,
-                        prob.obs[:, 2:4], prob.huber_px, prob.max_nfev, prob.rel_tol)
+                        prob.obs[:, 2:4], prob.huber_px, prob.max_nfev, prob.rel_tol, prob.whiten)
     res.ms = (time.perf_counter() - t0) * 1000
     return res
