@@ -1,6 +1,7 @@
 """Windowed bundle adjustment of keyframe poses and sparse points (reprojection error, Huber).
 
-Residuals ``pi(T_cw X) - uv`` for every observation; poses are updated as
+Residuals ``pi(T_cw X) - uv`` for every observation (each multiplied by its own 2x2 whitening matrix when
+given: the monocular front end discounts a track on an edge along the edge); poses are updated as
 ``T_cw <- se3_exp(dx) @ T_cw`` (world-to-camera, left-multiplied; the caller's
 camera-to-world poses are converted at the boundary), points additively.
 Solved by Levenberg-Marquardt with iteratively reweighted Huber weights, the points
