@@ -4,8 +4,9 @@ before / after comparisons of tracking changes on several datasets.
     python bench/mono_only.py DATA [DATA ...] [--config slam.yaml] [--max-frames N] [--json out.json]
 
 Per dataset: the same calls as :meth:`fmapping.slam.SlamRun.run_mono` (world frame and scale anchor
-from the GT of frame 0 / the bootstrap / frame 14; the mapper does not influence the mono front end
-unless ``mono.dense_extra``), then Sim3 / SE3 ATE of every frame, the Sim3 scale, the local scale of
+from the GT of frame 0 / the bootstrap / frame 14; a failed bootstrap starts again at the next frame, anchored
+there, and the frames before the one that succeeds have no pose; the mapper does not influence the mono front end
+unless ``mono.dense_extra``), then Sim3 / SE3 ATE of every frame with a pose, the Sim3 scale, the local scale of
 consecutive segments (Sim3 of each segment alone: the scale drift), the map's scale keyframe by keyframe
 against the GT depth (the frames' own, else a z-buffer of the data's ``gt_points.ply``) and its spread, lost
 frames, keyframes, loops accepted and whether the GT contradicts each (bench/real.py's check, on the loop's own
@@ -99,18 +100,22 @@ def run(data: str, cfg, max_frames=None) -> dict:
     gt = list(ds.gt_poses)
     fe = MonoFrontend(ds.camera, cfg.tracker, cfg.mono)
 
+    start = 0  # the first frame of the current bootstrap attempt: its world frame and scale anchor
+
     def base(k):
-        return None if gt[k] is None else float(np.linalg.norm(gt[k][:3, 3] - gt[0][:3, 3]))
+        return None if gt[k] is None else float(np.linalg.norm(gt[k][:3, 3] - gt[start][:3, 3]))
 
     t0 = time.perf_counter()
-    est, lost = {}, []
+    est, lost, restarts = {}, [], 0
     with loop_capture() as captured:
         i = 0
-        while i < len(ds) and not fe.initialized and not fe.failed:
-            out = fe.bootstrap(i, ds[i].rgb, gt[0], base)
+        while i < len(ds) and not fe.initialized:  # a failed bootstrap starts again, as fmapping slam's does
+            out = fe.bootstrap(i, ds[i].rgb, gt[start], base)
             i += 1
+            if fe.failed:
+                fe, start, restarts = MonoFrontend(ds.camera, cfg.tracker, cfg.mono), i, restarts + 1
         if not fe.initialized:
-            return {"data": data, "error": f"bootstrap failed after {i} frames"}
+            return {"data": data, "error": f"bootstrap failed after {i} frames ({restarts} attempts)"}
         est.update(out)
         for j in range(i, len(ds)):
             r = fe.track(j, ds[j].rgb)
@@ -120,18 +125,21 @@ def run(data: str, cfg, max_frames=None) -> dict:
         fe.settle_scale()
         est.update(fe.poses())
     secs = time.perf_counter() - t0
-    last, poses = gt[0], []
-    for k in range(len(ds)):
+    first = min(est)  # frames before the bootstrap that succeeded have no pose (as in fmapping slam's traj.txt)
+    last, poses = est[first], []
+    for k in range(first, len(ds)):
         last = est.get(k, last)
         poses.append(last)
-    e, g = np.stack(poses), np.stack(gt)
+    e, g = np.stack(poses), np.stack(gt[first:])
     s3, se = ate(e, g, "sim3"), ate(e, g, "se3")
-    chk = check_loops(fe.loops, captured, e, gt, s3["scale"], gray=lambda k: to_u8(ds[k].rgb),
+    by_frame = np.concatenate([np.repeat(e[:1], first, 0), e])  # indexed by frame (loops start after ``first``)
+    chk = check_loops(fe.loops, captured, by_frame, gt, s3["scale"], gray=lambda k: to_u8(ds[k].rgb),
                       camera=ds.camera)
     surface = Path(data) / "gt_points.ply"
     depth = gt_depth_source(ds, ds.camera, read_ply(surface).points if surface.exists() else None)
     kscale = keyframe_scales(fe, depth) if depth is not None else {"per_keyframe": {}, "spread": None}
-    return {"data": Path(data).name, "frames": len(ds), "seconds": round(secs, 1),
+    return {"data": Path(data).name, "frames": len(ds), "first_posed": first, "bootstrap_restarts": restarts,
+            "seconds": round(secs, 1),
             "ate_sim3_cm": round(100 * s3["rmse_m"], 2), "sim3_scale": round(s3["scale"], 4),
             "ate_se3_cm": round(100 * se["rmse_m"], 2), "rot_fit_deg": round(s3["rot_fit_mean_deg"], 2),
             "segment_scales": segment_scales(e, g), "map_scale_spread": kscale["spread"],
