@@ -11,7 +11,7 @@ import numpy as np
 
 from fmapping.camera import PinholeCamera
 from fmapping.geometry import inv_pose, scale_about
-from fmapping.tracking.ba import BAResult, bundle_adjust
+from fmapping.tracking.ba import BAResult, bundle_adjust, whitening
 from fmapping.tracking.features import at_width, structure_tensor, to_u8, triangulate
 from fmapping.tracking.mono.config import MonoConfig
 
@@ -213,7 +213,7 @@ class KeyframeStore:
         self.kf_pose[index] = np.asarray(c2w, np.float64).copy()
         self.kf_rgb[index] = rgb
         self._restart_stray_tracks(index)
-        wh = self._whitening(to_u8(rgb) if gray is None and c.ba_anisotropic else gray)
+        wh = self._whitening(rgb, gray)
         # observations of known landmarks
         has = tr.lid >= 0
         self.obs.extend(index, tr.lid[has], tr.geo[has], None if wh is None else wh[has])
@@ -243,18 +243,19 @@ class KeyframeStore:
             old = self.window.pop(0)
             self.kf_rgb.pop(old, None)
 
-    def _whitening(self, gray: Optional[np.ndarray]) -> Optional[np.ndarray]:
-        """The whitening matrices (N, 2, 2) of the tracks' pixel errors in keyframe image ``gray``; None when
-        ``ba_anisotropic`` is off. Each direction's variance is ``1 + ba_anisotropic_noise / lambda`` for the
-        structure tensor's eigenvalue ``lambda`` along it (:func:`~fmapping.tracking.features.structure_tensor`),
-        at most ``ba_anisotropic_cap``: LK's error from image noise is ``sigma^2 G^-1``, the 1 is the floor every
-        track has. A textured corner stays at the identity, a stripe is discounted along itself."""
+    def _whitening(self, rgb: np.ndarray, gray: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
+        """The whitening matrices (N, 2, 2) of the tracks' pixel errors in keyframe image ``rgb`` (``gray``, its grey
+        image, when the caller has it); None when ``ba_anisotropic`` is off. Each direction's variance is
+        ``1 + ba_anisotropic_noise / lambda`` for the structure tensor's eigenvalue ``lambda`` along it
+        (:func:`~fmapping.tracking.features.structure_tensor`), at most ``ba_anisotropic_cap``: LK's error from
+        image noise is ``sigma^2 G^-1``, the 1 is the floor every track has. A textured corner stays at the
+        identity, a stripe is discounted along itself."""
         c, tr = self.cfg, self.tracks
-        if not c.ba_anisotropic or gray is None or not len(tr):
+        if not c.ba_anisotropic or not len(tr):
             return None
-        w, vec = np.linalg.eigh(structure_tensor(gray, tr.uv, c.klt))
+        w, vec = np.linalg.eigh(structure_tensor(to_u8(rgb) if gray is None else gray, tr.uv, c.klt))
         var = np.clip(1.0 + c.ba_anisotropic_noise / np.maximum(w, 1e-12), 1.0, c.ba_anisotropic_cap)
-        return np.einsum("nij,nj,nkj->nik", vec, 1.0 / np.sqrt(var), vec)
+        return whitening(np.einsum("nij,nj,nkj->nik", vec, var, vec))
 
     def _restart_stray_tracks(self, index: int) -> None:
         """Tracks whose landmark reprojects more than ``kf_obs_max_px`` from them at keyframe ``index``'s pose
