@@ -667,3 +667,36 @@ def test_final_bundle_adjustment_pulls_a_keyframe_outside_the_window_back_to_the
         assert dt < 5e-4 and dr < 0.02, (i, dt, dr)
     ks = sorted(a)
     assert ate(np.stack([a[i] for i in ks]), np.stack([g[i] for i in ks]), "sim3")["rmse_m"] < 0.01
+
+
+def test_a_resumed_front_end_goes_on_with_the_saved_keyframes_older_than_its_frame():
+    """The keyframes a restarted front end keeps (restart.restored_keyframes): the saved ones older than the
+    frame it re-localised, oldest first, each landmark once however many of them saw it, every saved pixel an
+    observation of it, and the located keyframe's landmarks renumbered alike; none (so: the located keyframe
+    alone) when the located one is newer than the frame or a state has no landmark ids (an older file)."""
+    from fmapping.tracking.mono.restart import restored_keyframes
+
+    rng = np.random.default_rng(0)
+    world = rng.normal(size=(12, 3))  # landmark ids 100..111 of the killed front end
+
+    def state(k, lids):
+        lids = np.asarray(lids, np.int64)
+        return {"index": k, "c2w": np.eye(4), "gray": np.zeros((4, 4), np.uint8), "lid": lids,
+                "world": world[lids - 100], "uv": rng.uniform(0, 100, size=(len(lids), 2))}
+
+    states = [state(20, [100, 101, 102, 103]), state(14, [104, 100, 101]), state(26, [103, 105, 111])]
+    kept, lm, obs, ids = restored_keyframes(states, states[0], 24)
+    assert [st["index"] for st in kept] == [14, 20]  # keyframe 26 is newer than frame 24
+    assert len(lm) == 5 and len(obs) == 7  # landmarks 104, 100, 101, 102, 103 once; 3 + 4 pixels
+    rows = list(obs)  # (keyframe, landmark, u, v)
+    for st in kept:
+        mine = [(i, u, v) for k, i, u, v in rows if k == st["index"]]
+        assert len(mine) == len(st["lid"])
+        for (i, u, v), w, (su, sv) in zip(mine, st["world"], st["uv"]):
+            np.testing.assert_array_equal(lm[i], w)
+            assert (u, v) == (su, sv)
+    np.testing.assert_array_equal(np.stack([lm[i] for i in ids]), states[0]["world"])
+    assert np.all(obs.whiten == np.eye(2))
+    assert restored_keyframes(states, states[2], 24)[0] == []  # the located keyframe is newer than the frame
+    old = [{k: v for k, v in st.items() if k != "lid"} for st in states]
+    assert restored_keyframes(old, old[0], 24)[0] == []

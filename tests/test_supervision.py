@@ -53,20 +53,26 @@ def test_supervise_restarts_crashes_with_backoff_and_a_bound(capsys):
 
 FAULT_FRAMES = 48  # the kill tests' scene: 160x120, enough for the mono tracker's bootstrap and late anchor
 WINDOW = FAULT_MAPPER["new_frames_per_window"]
-# The map's completion ratio moves from run to run with the timing of the updates: two undisturbed runs of
-# this configuration gave 26.2 and 27.6 % (bench/faults.py, --poses tracker), 5 % apart. Measured disturbed:
-# mapper killed (GT poses) 57.2 % = undisturbed; tracker killed 29.2 %; killed launcher + --resume 25.1 and
-# 25.3 % in two runs, 9 % below (not pinned down yet). A disturbed run must come within 15 % of undisturbed.
-COMPLETION_SPREAD = 0.15  # relative
+# The map's completion ratio (5 cm, after the trajectory's Sim3) of an undisturbed run of this configuration is
+# the same from run to run: 34.04 % four times (2026-12-07, tracker poses; 52.20 % with GT poses). A killed and
+# restarted mapper resumes its map exactly (GT poses, launcher killed, `--resume`: 52.20 % again, twice), and with
+# tracker poses it keeps 98-99 % of it (kill -9 of the mapper: 33.4, 33.7 %). A restarted tracker re-localises and
+# goes on with poses as close to the GT (ATE within 0.1 cm of the undisturbed run's), but not the same poses, and
+# this coarse map (accuracy ~9 cm) moves with them: kill -9 of the tracker 32.3, 33.3 %; launcher killed and
+# `--resume` 27.4-32.7 % over nine runs (81-96 %). The map made offline (`fmapping map --poses`) from the final
+# poses of the 27.4 % run is 11.5 % below the one from the undisturbed run's final poses (22.4 vs 25.3 %): the
+# resumed trajectory is worse for mapping by what the ATE does not show, not the resumed mapper.
+COMPLETION_SPREAD = 0.15  # relative: the tracker's poses unchanged
+RELOCALISED_SPREAD = 0.30  # relative: the tracker restarted (measured down to 19 % below)
 
 
-def _same_map(run, clean) -> str:
+def _same_map(run, clean, spread: float = COMPLETION_SPREAD) -> str:
     """The map scores of ``run`` and ``clean`` (one line), after checking that ``run`` completes at least
-    as much of the scene as ``clean`` less the run-to-run spread."""
+    as much of the scene as ``clean`` less ``spread`` (relative)."""
     line = (f"map completion ratio {run.completion:.1f} % vs {clean.completion:.1f} % undisturbed, accuracy "
             f"{run.metrics['recon_sim3']['accuracy_cm']:.2f} vs {clean.metrics['recon_sim3']['accuracy_cm']:.2f} cm")
     assert clean.completion > 5.0, "the undisturbed run made no map to compare with"
-    assert run.completion >= (1 - COMPLETION_SPREAD) * clean.completion, line
+    assert run.completion >= (1 - spread) * clean.completion, line
     return line
 
 
@@ -199,7 +205,7 @@ def test_kill_9_of_the_tracker_relocalises_and_loses_at_most_one_window(fault_sc
           f"{se3['killed']:.2f} cm vs {se3['clean']:.2f} cm undisturbed (Sim3 {run.ate_cm:.2f} vs {clean.ate_cm:.2f})")
     assert len(lost) <= WINDOW
     assert se3["killed"] <= 1.5 * se3["clean"]
-    print("[supervision] " + _same_map(run, clean))
+    print("[supervision] " + _same_map(run, clean, RELOCALISED_SPREAD))
 
 
 def _gone(pid: int) -> bool:
@@ -270,7 +276,7 @@ def test_fmapping_up_resume_continues_a_killed_run(fault_scene, tmp_path):
     print(f"[resume] position error (median / max): {parts}; "
           f"undisturbed {_errors_by_part(clean.out, scene, killed_at)}")
     assert se3[0] <= 1.5 * se3[1], parts
-    print("[resume] " + _same_map(run, clean))
+    print("[resume] " + _same_map(run, clean, RELOCALISED_SPREAD))
     # record added the second part to the poses of the first: every frame the mapper has is in its files
     assert min(record.values()) >= run.frames
     assert (out / "logs.1" / "mapper.log").is_file() and (out / "logs" / "mapper.log").is_file()  # both parts' logs
@@ -392,10 +398,11 @@ def _feed_frames(core, ds, ids) -> dict:
 
 
 def test_a_restarted_mono_tracker_relocalises_against_its_saved_keyframe(room320, tmp_path):
-    """The tracker keeps its current keyframe (image, pose, landmarks) in a state file. A tracker
+    """The tracker keeps its newest keyframes (images, poses, landmarks) in a state file. A tracker
     started again with it (a kill -9: everything in memory is gone) re-localises the first frame it
-    gets against that keyframe and tracks on in the same world frame and scale, without a new
-    bootstrap; its poses are as close to the GT as those of a tracker that was never stopped."""
+    gets against the nearest of them and tracks on in the same world frame and scale, without a new
+    bootstrap, its bundle adjustment window holding the saved keyframes; its poses are as close to the
+    GT as those of a tracker that was never stopped."""
     from fmapping.datasets import open_dataset
     from fmapping.metrics import ate
     from services.tracker.core import TrackerCore, TrackerServiceOptions
@@ -416,6 +423,9 @@ def test_a_restarted_mono_tracker_relocalises_against_its_saved_keyframe(room320
     assert again.counters.get("resume_keyframe") == saved
     after = _feed_frames(again, ds, range(cut, n))
     assert again.counters.get("resumed_at") == cut and again.counters.get("bootstrap_frame", -1) == -1
+    older = [int(st["index"]) for st in kept if st["index"] < cut]
+    assert again.counters.get("resume_keyframes") == len(older) >= 2
+    assert set(older) & set(again.mono.store.kf_pose) == set(older)  # kept (the window moved on since)
     assert sorted(after) == list(range(cut, n)) and all(p.quality > 0 for p in after.values())
     kf_err = 100 * np.linalg.norm(kept[-1]["c2w"][:3, 3] - ds[saved].c2w[:3, 3])  # what it inherits
     undisturbed = _feed_frames(TrackerCore(), ds, range(n))

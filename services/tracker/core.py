@@ -348,6 +348,7 @@ class TrackerCore(MapFrontend, ServiceCore):
         self.counters.set("resumed_at", seq)
         self.counters.set("resume_keyframe", int(self.mono.init_info["resumed_from"]))
         self.counters.set("resume_points", int(self.mono.init_info.get("points", 0)))
+        self.counters.set("resume_keyframes", int(self.mono.init_info.get("keyframes_restored", 0)))
         self.counters.inc("frames_tracked")
         self._save_state()
         return self._publish(ups)

@@ -15,6 +15,7 @@ log = logging.getLogger("fmapping.tracker")
 
 
 RESUME_KEYS = {"index": 0, "gray": 2, "c2w": 2, "world": 2, "uv": 2, "prev_index": 0, "prev_c2w": 2}  # key: ndim
+OPTIONAL_KEYS = {"lid": 1}  # the landmarks' ids (files of before them resume against one keyframe)
 
 
 def save_resume_state(path, states: list) -> None:
@@ -25,7 +26,8 @@ def save_resume_state(path, states: list) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_open(path, fsync=True) as fh:
-        np.savez(fh, **{f"k{i}_{k}": np.asarray(st[k]) for i, st in enumerate(states) for k in RESUME_KEYS})
+        np.savez(fh, **{f"k{i}_{k}": np.asarray(st[k]) for i, st in enumerate(states)
+                        for k in (*RESUME_KEYS, *OPTIONAL_KEYS) if k in st})
 
 
 class StateWriter:
@@ -91,9 +93,11 @@ class StateWriter:
 def _resume_entry(z, i: int) -> dict:
     """Keyframe ``i`` of a loaded state file, checked (ValueError / KeyError when it is not one)."""
     st = {k: np.array(z[f"k{i}_{k}"]) for k in RESUME_KEYS}
-    bad = [k for k, nd in RESUME_KEYS.items() if st[k].ndim != nd]
+    st.update({k: np.array(z[f"k{i}_{k}"]) for k in OPTIONAL_KEYS if f"k{i}_{k}" in z.files})
+    bad = [k for k, nd in {**RESUME_KEYS, **OPTIONAL_KEYS}.items() if k in st and st[k].ndim != nd]
     n = len(st["world"])
     if bad or st["c2w"].shape != (4, 4) or st["world"].shape != (n, 3) or st["uv"].shape != (n, 2) \
+            or ("lid" in st and (st["lid"].shape != (n,) or st["lid"].dtype.kind not in "iu")) \
             or not all(np.isfinite(st[k]).all() for k in ("c2w", "world", "uv", "prev_c2w")):
         raise ValueError(f"keyframe {i}: unexpected arrays {bad or 'shapes'}")
     st["index"], st["prev_index"] = int(st["index"]), int(st["prev_index"])

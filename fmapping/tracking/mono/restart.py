@@ -20,7 +20,7 @@ class Restart:
     def keyframe_states(self, n: int = 5) -> list:
         """What a restarted front end needs to go on in this world frame and scale (:meth:`resume`): for
         the newest ``n`` keyframes of the bundle-adjustment window (oldest first), the frame number, grey
-        image and pose, and the landmarks it observed (world points and their pixels there). Empty
+        image and pose, and the landmarks it observed (ids, world points and their pixels there). Empty
         before the bootstrap and while the scale is pending."""
         if not self.initialized or self.scale_pending:
             return []
@@ -38,7 +38,7 @@ class Restart:
             prev = max((j for j in self.store.kf_pose if j < k), default=k)  # for a motion guess (resume)
             out.append({"index": int(k), "gray": to_u8(self.store.kf_rgb[k]), "c2w": self.store.kf_pose[k].copy(),
                         "world": np.stack([self.store.lm[i] for i in lids]).astype(np.float64),
-                        "uv": np.array([seen[i] for i in lids], np.float64),
+                        "uv": np.array([seen[i] for i in lids], np.float64), "lid": lids,
                         "prev_index": int(prev), "prev_c2w": self.store.kf_pose[prev].copy()})
         return out
 
@@ -53,12 +53,12 @@ class Restart:
         from guesses along the keyframes' motion, continued at constant velocity up to frame
         ``index`` (the frames between went by unseen); the guess locating most landmarks wins."""
         for state in sorted(states, key=lambda st: (abs(index - int(st["index"])), -int(st["index"]))):
-            c2w = self._resume_from(index, rgb, state)
+            c2w = self._resume_from(index, rgb, state, states)
             if c2w is not None:
                 return c2w
         return None
 
-    def _resume_from(self, index: int, rgb: np.ndarray, state: dict) -> Optional[np.ndarray]:
+    def _resume_from(self, index: int, rgb: np.ndarray, state: dict, states: list) -> Optional[np.ndarray]:
         """:meth:`resume` against one saved keyframe."""
         gray = to_u8(rgb)
         c2w_kf = np.asarray(state["c2w"], np.float64)
@@ -73,19 +73,24 @@ class Restart:
         if m is None or len(m.index) < self.cfg.min_ref_points:
             return None
         c2w = orthonormalize(m.c2w)
-        world = np.asarray(state["world"], np.float64)[m.index]
+        kept, lm, obs, ids = restored_keyframes(states, state, index)
+        if not kept:  # the saved keyframe alone, its landmarks numbered afresh
+            lm, obs = list(np.asarray(state["world"], np.float64)), Observations()
+            ids = np.arange(len(lm), dtype=np.int64)
+        lids = ids[m.index]
         self._first_index = self._kf_index = index
         self._c2w0 = c2w.copy()
-        self.store.kf_pose = {index: c2w.copy()}
-        self.store.kf_rgb = {index: rgb}
-        self.store.window = [index]
-        self.store.lm = list(world)
-        self.store.obs = Observations()
-        self.store.obs.extend(index, np.arange(len(m.uv)), m.uv)
+        self.store.kf_pose = {**{int(st["index"]): np.asarray(st["c2w"], np.float64).copy() for st in kept},
+                              index: c2w.copy()}
+        self.store.kf_rgb = {**{int(st["index"]): np.asarray(st["gray"], np.uint8) for st in kept}, index: rgb}
+        self.store.window = ([int(st["index"]) for st in kept] + [index])[-self.cfg.window:]
+        self.store.lm = lm
+        obs.extend(index, lids, m.uv)
+        self.store.obs = obs
         tr = Tracks(m.uv, index)
-        tr.lid = np.arange(len(world), dtype=np.int64)
+        tr.lid = lids.astype(np.int64)
         self.store.tracks = tr
-        self.store.rel = {index: (index, np.eye(4))}
+        self.store.rel = {k: (k, np.eye(4)) for k in self.store.kf_pose}
         self._last_gray, self._last_gray_frame = gray, index
         self.tracker.reset_motion([c2w], [index])
         try:
@@ -93,11 +98,36 @@ class Restart:
         except ValueError:
             return None  # too few points with depth to track against (still uninitialised)
         if self.cfg.loop.enabled:
-            self._kf_images = {index: gray}
+            self._kf_images = {**{int(st["index"]): np.asarray(st["gray"], np.uint8) for st in kept}, index: gray}
         self.initialized, self.failed, self._buf = True, False, []
-        self.init_info = {"frame": int(index), "resumed_from": int(state["index"]), "points": int(len(world)),
-                          "scale_from": "resumed"}
+        self.init_info = {"frame": int(index), "resumed_from": int(state["index"]), "points": int(len(lids)),
+                          "keyframes_restored": len(kept), "scale_from": "resumed"}
         return c2w
+
+
+def restored_keyframes(states: list, located: dict, index: int) -> tuple:
+    """The saved keyframes a front end resumed at frame ``index`` (located against keyframe ``located``, one of
+    ``states``) goes on with: ``(kept, landmarks, observations, ids)``, the states older than ``index`` (oldest
+    first), the world points of their landmarks (each once), their observations (the identity whitening: the
+    corners' shapes are not saved) and the new id of each of ``located``'s landmarks. ``([], [], None, None)`` when
+    ``located`` is not among them, or a state holds no landmark ids (a file of before they were saved)."""
+    kept = sorted((st for st in states if int(st["index"]) < index), key=lambda st: int(st["index"]))
+    if not any(st is located for st in kept) or any("lid" not in st for st in kept):
+        return [], [], None, None
+    new_id: dict = {}
+    lm: list = []
+    obs = Observations()
+    for st in kept:
+        ids = np.empty(len(st["lid"]), np.int64)
+        for j, (lid, w) in enumerate(zip(np.asarray(st["lid"]).tolist(), np.asarray(st["world"], np.float64))):
+            if lid not in new_id:
+                new_id[lid] = len(lm)
+                lm.append(w.copy())
+            ids[j] = new_id[lid]
+        obs.extend(int(st["index"]), ids, np.asarray(st["uv"], np.float64))
+        if st is located:
+            located_ids = ids
+    return kept, lm, obs, located_ids
 
 
 def resume_guesses(state: dict, index: int, n: int = 8) -> list:
