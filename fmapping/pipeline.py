@@ -128,21 +128,24 @@ def open_job_dataset(job: Job):
     return ds
 
 
-def recon_stats(ds, out: Path, mesh: bool = False, sim3: Optional[tuple] = None) -> dict:
+def recon_stats(ds, out: Path, mesh: bool = False, sim3: Optional[tuple] = None,
+                pose_sim3: Optional[tuple] = None) -> dict:
     """Reconstruction metrics (NICE-SLAM protocol, 200k samples, 5 cm) of ``out/map.ply`` - and of
     ``out/mesh.ply`` with ``mesh`` - against the dataset's visible GT cloud
     (``meta["gt_visible_cloud"]``): ``{"recon": ..., "recon_mesh": ...}``, ``{}`` without one.
     With ``sim3 = (s, R, t)`` (the trajectory's alignment to the GT) also ``"recon_sim3"``: the
-    map moved by it first, the usual protocol for monocular maps."""
+    map moved by it first, the usual protocol for monocular maps; with ``pose_sim3`` (the alignment by whole
+    poses, :func:`fmapping.metrics.align_poses`) also ``"recon_pose_sim3"``."""
     gt_cloud = ds.meta.get("gt_visible_cloud") if isinstance(ds.meta, dict) else None
     if not gt_cloud or not Path(gt_cloud).is_file():
         return {}
     from fmapping.metrics import eval_recon_files
 
     res = {"recon": eval_recon_files(str(out / "map.ply"), gt_cloud, samples=200_000, threshold=0.05, seed=0)}
-    if sim3 is not None:
-        res["recon_sim3"] = eval_recon_files(str(out / "map.ply"), gt_cloud, samples=200_000, threshold=0.05,
-                                             seed=0, align=sim3)
+    for name, align in (("recon_sim3", sim3), ("recon_pose_sim3", pose_sim3)):
+        if align is not None:
+            res[name] = eval_recon_files(str(out / "map.ply"), gt_cloud, samples=200_000, threshold=0.05, seed=0,
+                                         align=align)
     if mesh:
         res["recon_mesh"] = eval_recon_files(str(out / "mesh.ply"), gt_cloud, samples=200_000, threshold=0.05, seed=0)
     return res

@@ -238,6 +238,26 @@ def test_umeyama_rotation_matches_scipy_kabsch_on_noisy_data():
     assert np.linalg.det(r) == pytest.approx(1.0)
 
 
+def test_align_poses_recovers_a_similarity_and_pins_the_rotation_about_a_straight_path():
+    """align_poses finds the similarity between two trajectories from their whole poses: exactly on any path, and
+    on a straight one too, where the camera centres alone (align_trajectory) leave the rotation about the line
+    free."""
+    gt = _random_traj(30, 3)
+    est = _sim3_apply(gt, 0.5, Rotation.from_rotvec([0.3, -0.8, 0.5]).as_matrix(), np.array([1.0, 2.0, -1.0]))
+    s, r, t = M.align_poses(est, gt)
+    np.testing.assert_allclose(_sim3_apply(est, s, r, t), gt, atol=1e-9)
+    line = gt.copy()
+    line[:, :3, 3] = np.linspace(0.0, 1.0, 30)[:, None] * [1.0, 0.0, 0.0]
+    roll = Rotation.from_rotvec([np.radians(10.0), 0.0, 0.0]).as_matrix()  # about the path itself
+    est = _sim3_apply(line, 2.0, roll, np.zeros(3))
+    s, r, t = M.align_poses(est, line)
+    np.testing.assert_allclose(_sim3_apply(est, s, r, t), line, atol=1e-9)
+    _, (_, r_centres, _) = M.align_trajectory(est, line, "sim3")
+    assert float(M.rotation_angle_deg(r_centres @ roll)) > 1.0  # the centres alone: the roll is lost
+    with pytest.raises(ValueError, match="lever_m"):
+        M.align_poses(est, line, lever_m=0.0)
+
+
 def test_ate_sim3_vs_se3_on_scaled_rotated_trajectory():
     gt = _random_traj(60, 0)
     rot = Rotation.from_rotvec([0.5, 1.0, -0.7]).as_matrix()

@@ -53,26 +53,30 @@ def test_supervise_restarts_crashes_with_backoff_and_a_bound(capsys):
 
 FAULT_FRAMES = 48  # the kill tests' scene: 160x120, enough for the mono tracker's bootstrap and late anchor
 WINDOW = FAULT_MAPPER["new_frames_per_window"]
-# The map's completion ratio (5 cm, after the trajectory's Sim3) of an undisturbed run of this configuration is
-# the same from run to run: 34.04 % four times (2026-12-07, tracker poses; 52.20 % with GT poses). A killed and
-# restarted mapper resumes its map exactly (GT poses, launcher killed, `--resume`: 52.20 % again, twice), and with
-# tracker poses it keeps 98-99 % of it (kill -9 of the mapper: 33.4, 33.7 %). A restarted tracker re-localises and
-# goes on with poses as close to the GT (ATE within 0.1 cm of the undisturbed run's), but not the same poses, and
-# this coarse map (accuracy ~9 cm) moves with them: kill -9 of the tracker 32.3, 33.3 %; launcher killed and
-# `--resume` 27.4-32.7 % over nine runs (81-96 %). The map made offline (`fmapping map --poses`) from the final
-# poses of the 27.4 % run is 11.5 % below the one from the undisturbed run's final poses (22.4 vs 25.3 %): the
-# resumed trajectory is worse for mapping by what the ATE does not show, not the resumed mapper.
-COMPLETION_SPREAD = 0.15  # relative: the tracker's poses unchanged
-RELOCALISED_SPREAD = 0.30  # relative: the tracker restarted (measured down to 19 % below)
+# The maps are compared after the Sim3 of the whole poses (metrics.align_poses): the centres of this short walk
+# leave the rotation about the path loose, and the maps moved by their fit were tilted by 3.7-5.0 deg, by a different
+# angle in each run. Measured 2026-12-07 (bench/results/resume_map_2026-12-07/), completion ratio (5 cm) after the
+# poses' / the centres' Sim3: an undisturbed run 42.7 / 34.0 % (deterministic: four runs alike); kill -9 of the
+# mapper, tracker poses, 41.5-41.7 / 33.4-33.7 % (3 runs; with GT poses a resumed mapper's map is the undisturbed one
+# to every digit); kill -9 of the tracker 39.7-40.4 / 32.3-33.3 % (6 runs); launcher killed and `--resume` 37.2-39.9
+# / 27.4-32.7 % (8 runs). A restarted tracker re-localises and goes on with poses as close to the GT (ATE within 0.1
+# cm of the undisturbed run's) but not the same poses, and this coarse map (accuracy 7-9 cm) moves with them.
+COMPLETION_SPREAD = 0.15  # relative: the tracker's poses unchanged (measured 2-3 % below)
+RELOCALISED_SPREAD = 0.20  # relative: the tracker restarted (measured 5-13 % below)
 
 
 def _same_map(run, clean, spread: float = COMPLETION_SPREAD) -> str:
     """The map scores of ``run`` and ``clean`` (one line), after checking that ``run`` completes at least
-    as much of the scene as ``clean`` less ``spread`` (relative)."""
-    line = (f"map completion ratio {run.completion:.1f} % vs {clean.completion:.1f} % undisturbed, accuracy "
-            f"{run.metrics['recon_sim3']['accuracy_cm']:.2f} vs {clean.metrics['recon_sim3']['accuracy_cm']:.2f} cm")
-    assert clean.completion > 5.0, "the undisturbed run made no map to compare with"
-    assert run.completion >= (1 - spread) * clean.completion, line
+    as much of the scene as ``clean`` less ``spread`` (relative), both after the Sim3 of their whole poses."""
+    def scores(r) -> tuple:
+        return (r.metrics["recon_pose_sim3"]["completion_ratio"], r.metrics["recon_pose_sim3"]["accuracy_cm"],
+                r.completion)
+
+    (c_run, a_run, p_run), (c_ref, a_ref, p_ref) = scores(run), scores(clean)
+    line = (f"map completion ratio {c_run:.1f} % vs {c_ref:.1f} % undisturbed, accuracy {a_run:.2f} vs "
+            f"{a_ref:.2f} cm (after the poses' Sim3; after the centres' Sim3 {p_run:.1f} vs {p_ref:.1f} %)")
+    assert c_ref > 5.0, "the undisturbed run made no map to compare with"
+    assert c_run >= (1 - spread) * c_ref, line
     return line
 
 

@@ -46,22 +46,24 @@ def run_demo(args) -> int:
 
 def demo_metrics(out: Path, scene_dir: Path) -> dict:
     """ATE of ``out/traj.txt`` against the scene's ground truth (SE3 and Sim3) and the map's scores
-    (:func:`fmapping.pipeline.recon_stats`: unaligned and after the trajectory's Sim3)."""
+    (:func:`fmapping.pipeline.recon_stats`: unaligned, after the trajectory's Sim3, and after the Sim3 of its whole
+    poses, :func:`fmapping.metrics.align_poses`)."""
     from fmapping.datasets import open_dataset
-    from fmapping.metrics import align_trajectory, ate, match_trajectory_files
+    from fmapping.metrics import align_poses, align_trajectory, ate, match_trajectory_files
     from fmapping.pipeline import recon_stats
 
     report: dict = {"out": str(out)}
-    sim3 = None
+    sim3 = pose_sim3 = None
     if (out / "traj.txt").is_file():
         est, gt, _, _ = match_trajectory_files(out / "traj.txt", scene_dir / "groundtruth.txt")
         t = {a: ate(est, gt, a) for a in ("se3", "sim3")}
         sim3 = align_trajectory(est, gt, "sim3")[1]
+        pose_sim3 = align_poses(est, gt)
         report["trajectory"] = {"frames": len(est), "ate_se3_cm": 100 * t["se3"]["rmse_m"],
                                 "ate_sim3_cm": 100 * t["sim3"]["rmse_m"], "sim3_scale": float(sim3[0]),
                                 "rot_fit_mean_deg": t["sim3"]["rot_fit_mean_deg"]}
     if (out / "map.ply").is_file():
         keys = ("accuracy_cm", "completion_cm", "completion_ratio")
-        for name, r in recon_stats(open_dataset(scene_dir), out, sim3=sim3).items():
+        for name, r in recon_stats(open_dataset(scene_dir), out, sim3=sim3, pose_sim3=pose_sim3).items():
             report[name] = {k: r[k] for k in keys if k in r}
     return report
