@@ -83,6 +83,10 @@ class ServiceCore:
         self.on_bad_input = on_bad_input
         self.last_error = ""
         self.camera_dict: Optional[dict] = None
+        # the camera the run's frames carry, when the launcher knows it (its data): a first frame with another one
+        # is refused instead of fixing the stream's camera (an authorised peer gone wrong could otherwise take the
+        # stream with one small frame before the data's first)
+        self.expected_camera: Optional[dict] = None
         self.newest_seq = -1  # the newest frame number the core took (the head of the stream)
         # seconds since a frame last arrived (the shell: its frames inbox, Inbox.idle). A core behind the
         # camera drops work to keep pace only while frames keep coming; once the stream has ended or
@@ -133,9 +137,12 @@ class ServiceCore:
     def frame_camera(self, f: P.Frame, undistorted: bool = False) -> Optional[dict]:
         """The camera of frame ``f`` when the stream can take the frame, else None (counted as
         ``rejected_frames``): the stream's camera (``camera_dict``) when it is fixed, the
-        :func:`usable_camera` of the first frame otherwise (the caller fixes it)."""
+        :func:`usable_camera` of the first frame otherwise (the caller fixes it), which must be
+        ``expected_camera`` when that is set."""
         try:
             if self.camera_dict is None:
+                if self.expected_camera is not None and f.camera != self.expected_camera:
+                    raise ValueError(f"camera {f.camera} is not the run's camera {self.expected_camera}")
                 return usable_camera(f.camera, undistorted)
             if f.camera != self.camera_dict:
                 raise ValueError(f"camera {f.camera} differs from the stream's {self.camera_dict}")

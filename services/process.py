@@ -152,6 +152,25 @@ def add_first_message_arg(p: argparse.ArgumentParser, what: str) -> None:
                         f"with code {EXIT_STALLED}, naming what it waited for (0 = wait forever)")
 
 
+def camera_json(text: str) -> dict:
+    """``--stream-camera``'s value: a JSON object (a Frame's camera dict), an argparse error otherwise."""
+    import json
+
+    try:
+        cam = json.loads(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(f"not JSON: {e}") from None
+    if not isinstance(cam, dict) or not {"fx", "fy", "cx", "cy", "width", "height"} <= set(cam):
+        raise argparse.ArgumentTypeError("a JSON object with fx, fy, cx, cy, width, height (a frame's camera)")
+    return cam
+
+
+def add_stream_camera_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--stream-camera", type=camera_json, default=None,
+                   help="the camera the run's frames carry (JSON, as in a frame message): a first frame with "
+                        "another camera is refused instead of fixing the stream's (fmapping up passes its data's)")
+
+
 class FirstMessage:
     """A service waiting for its first data message: :meth:`expired` once ``timeout`` seconds
     (0: never) have passed since start without :meth:`see`. A run whose producer never came

@@ -324,6 +324,40 @@ def test_mapper_core_announces_its_newest_keyframe_for_the_viewer(dataset):
     assert viewer.keyframes == [announced[-1]] and f"world/keyframes/kf{announced[-1]:06d}" in viewer.rec.entities
 
 
+def test_given_the_runs_camera_a_hostile_first_frame_cannot_fix_the_stream(dataset):
+    """An authorised peer gone wrong sends a small frame numbered 10^9, and a pose for it, before the data's first
+    (bench/faults.py's flood did: the mapper and the tracker took its 8x8 camera and refused all 48 real frames).
+    Given the run's camera (``--stream-camera``: fmapping up passes its data's), they refuse it and take the data."""
+    import argparse
+
+    from services.mapper.core import MapperCore, MapperServiceOptions
+    from services.process import camera_json
+    from services.tracker.core import TrackerCore, TrackerServiceOptions
+
+    hostile = P.encode(P.Frame(seq=10**9, timestamp=0.0, rgb=np.zeros((8, 8, 3), np.uint8),
+                               camera={"fx": 10.0, "fy": 10.0, "cx": 4.0, "cy": 4.0, "width": 8, "height": 8}))
+    ours = dataset.describe()["camera"]
+    for expected in (None, ours):
+        mapper = MapperCore(small_cfg(), MapperServiceOptions(pose_source="gt"))
+        tracker = TrackerCore(opts=TrackerServiceOptions())
+        for core in (mapper, tracker):
+            core.expected_camera = expected
+            core.handle("poses", P.encode(P.Pose(seq=10**9, timestamp=0.0, c2w=np.eye(4), source="gt")))
+            core.handle("frames", hostile)
+            feed(core, dataset, range(3))
+        if expected is None:  # the hostile frame fixed both streams' camera: every real frame refused
+            assert mapper.camera_dict["width"] == tracker.camera_dict["width"] == 8
+            assert mapper.counters.get("rejected_frames") == tracker.counters.get("rejected_frames") == 3
+        else:
+            assert mapper.camera_dict == tracker.camera_dict == ours
+            assert mapper.counters.get("rejected_frames") == tracker.counters.get("rejected_frames") == 1
+            assert mapper.counters.get("frames_received") == tracker.counters.get("frames_received") == 3
+            assert "is not the run's camera" in mapper.last_error
+    assert camera_json(__import__("json").dumps(ours)) == ours
+    with pytest.raises(argparse.ArgumentTypeError):
+        camera_json('{"fx": 1}')
+
+
 def test_mapper_checkpoint_resume(dataset, tmp_path):
     from services.mapper.core import MapperCore, MapperServiceOptions
 

@@ -184,6 +184,9 @@ def run_up(args) -> int:
     mapper_cfg = with_user_box(mapper_cfg, getattr(args, "bbox", None), out)
     # errors in data or configs: before any process
     info = run_info(data, poses, mapper_cfg, tracker_cfg, opts, camera, source_options(args))
+    # the camera play's frames carry (the data's, as play opens it): the mapper and the tracker refuse a first frame
+    # with another one, so that a peer gone wrong cannot fix the stream's camera before play's first frame
+    stream_camera = None if live else json.dumps(info["dataset"]["camera"])
     started = time.time()
     if resuming:
         print(f"fmapping up: resuming the run in {out}: the mapper from its checkpoint, play from the first frame "
@@ -200,7 +203,7 @@ def run_up(args) -> int:
     first_wait = "4500" if poses == "external" else None
     mapper_argv = service_command(
         "services.mapper", poses=poses, out=str(out), **net("mapper"), threads=threads,
-        first_message_timeout=first_wait,
+        first_message_timeout=first_wait, stream_camera=stream_camera,
         # the map tracker tracks only once the mapper has a map
         unposed_init="yes" if poses == "tracker" and not mono else None,
         resent_frames=poses == "tracker" and not live,  # play sends a restarted tracker what it missed (resend_to)
@@ -256,6 +259,7 @@ def run_up(args) -> int:
         if poses == "tracker":
             targv = service_command(
                 "services.tracker", frontend=opts.tracker_frontend, **net("tracker"), threads=threads,
+                stream_camera=stream_camera,
                 # a restarted tracker re-localises against its last keyframe (same world frame and scale)
                 state=str(tracker_state(out)) if mono else None, skip_behind=0 if paced else None,
                 # paced: the poses of fmapping slam, run for run

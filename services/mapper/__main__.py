@@ -24,8 +24,8 @@ from services.mapper.core import (
     POSE_SOURCES, MapperCore, MapperServiceOptions, await_source_final, load_mapper_config,
 )
 from services.mapper.intake import FRAME_BYTES, FRAME_CAPACITY, book_for, frame_rank, inbox_frames_ok, inbox_mib_ok
-from services.process import (FirstMessage, add_first_message_arg, available_cpus, run_main, service_parser,
-                              set_torch_threads, setup_logging)
+from services.process import (FirstMessage, add_first_message_arg, add_stream_camera_arg, available_cpus, run_main,
+                              service_parser, set_torch_threads, setup_logging)
 from services.transport import Service
 from services.zenoh_session import add_common_args
 
@@ -81,6 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="torch threads (0 = auto: half the CPUs this process may use, at least 1)")
     p.add_argument("--linger", action="store_true", help="after the end, keep answering map/latest until SIGTERM")
     add_first_message_arg(p, "frame")
+    add_stream_camera_arg(p)
     return add_common_args(p)
 
 
@@ -131,6 +132,7 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args, book=None) -> int
                       should_stop=lambda: svc.shutdown.requested, book=book)
     core.backlog = lambda: svc.inbox.size("frames")
     core.stream_idle = lambda: svc.inbox.idle("frames")
+    core.expected_camera = args.stream_camera
     if opts.resume and core.load_checkpoint():
         svc.log.info("resumed from %s at frame %d (field version %d)", core.resumed_from, core.ack, core.version)
     keys = svc.keys

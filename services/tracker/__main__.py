@@ -12,7 +12,7 @@ import logging
 
 from fmapping.runtime import limit_blas_threads, retain_freed_memory, single_malloc_arena
 from services.core_support import MIB
-from services.process import (FirstMessage, add_first_message_arg, run_main, service_parser,
+from services.process import (FirstMessage, add_first_message_arg, add_stream_camera_arg, run_main, service_parser,
                               set_torch_threads, setup_logging)
 from services.tracker.core import TrackerCore, TrackerServiceOptions, load_tracker_config
 from services.transport import Service
@@ -52,6 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--query-timeout", type=float, default=2.0, help="seconds to wait for map/latest at start")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0 = auto: 1; its tensors are small)")
     add_first_message_arg(p, "frame")
+    add_stream_camera_arg(p)
     return add_common_args(p)
 
 
@@ -85,6 +86,7 @@ def serve(svc: Service, cfg, opts: TrackerServiceOptions, args) -> int:
     core = TrackerCore(cfg, opts, counters=svc.counters, on_bad_input=svc.report_bad_input)
     core.backlog = lambda: svc.inbox.size("frames")
     core.stream_idle = lambda: svc.inbox.idle("frames")
+    core.expected_camera = args.stream_camera
     keys = svc.keys
     # checked before queueing: a bad or implausible message never displaces a real one
     svc.subscribe_control()
