@@ -166,9 +166,30 @@ def camera_json(text: str) -> dict:
 
 
 def add_stream_camera_arg(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--stream-camera", type=camera_json, default=None,
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--stream-camera", type=camera_json, default=None,
                    help="the camera the run's frames carry (JSON, as in a frame message): a first frame with "
                         "another camera is refused instead of fixing the stream's (fmapping up passes its data's)")
+    g.add_argument("--stream-camera-of", default=None, metavar="DATA",
+                   help="the same, the camera of the dataset DATA as io play opens it without --camera (docker "
+                        "compose: /data); a dataset that cannot be opened here leaves the check off, with a warning")
+
+
+def stream_camera(args, log: logging.Logger) -> Optional[dict]:
+    """The camera ``--stream-camera`` / ``--stream-camera-of`` give (None: neither, or a dataset that cannot be
+    opened, logged)."""
+    if getattr(args, "stream_camera", None) is not None:
+        return args.stream_camera
+    data = getattr(args, "stream_camera_of", None)
+    if not data:
+        return None
+    from fmapping.datasets import open_dataset
+
+    try:
+        return dict(open_dataset(data).describe()["camera"])
+    except Exception as e:  # any dataset error: the check is an extra, the frames' own checks still apply
+        log.warning("--stream-camera-of %s: cannot open it (%s); the first frame fixes the stream's camera", data, e)
+        return None
 
 
 class FirstMessage:

@@ -232,6 +232,8 @@ def test_crashed_mapper_and_tracker_are_restarted_and_resume_within_the_run(comp
         policy = svc[name]["restart"]
         assert policy.startswith("on-failure:") and 1 <= int(policy.split(":")[1]) <= 5, (name, policy)
         argv = shlex.split(svc[name]["command"])
+        # the data's camera: a first frame of another camera is refused (a peer gone wrong cannot fix the stream's)
+        assert argv[argv.index("--stream-camera-of") + 1] == "/data"
         if name.startswith("tracker"):
             assert argv[argv.index("--state") + 1].startswith("/out/")
         else:

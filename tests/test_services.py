@@ -358,6 +358,24 @@ def test_given_the_runs_camera_a_hostile_first_frame_cannot_fix_the_stream(datas
         camera_json('{"fx": 1}')
 
 
+def test_stream_camera_of_a_dataset_is_the_camera_play_sends(scene, tmp_path, caplog):
+    """``--stream-camera-of DATA`` (docker compose: /data) gives the camera of the frames io play sends from DATA;
+    a folder that is no dataset leaves the check off, with a warning."""
+    import logging
+
+    from fmapping.datasets import open_dataset
+    from services.mapper.__main__ import build_parser
+    from services.process import stream_camera
+
+    log = logging.getLogger("fmapping.test")
+    sent = P.decode(P.encode(P.frame_from_dataset(open_dataset(scene)[0]))).camera
+    assert stream_camera(build_parser().parse_args(["--stream-camera-of", str(scene)]), log) == sent
+    assert stream_camera(build_parser().parse_args([]), log) is None
+    with caplog.at_level(logging.WARNING, logger="fmapping.test"):
+        assert stream_camera(build_parser().parse_args(["--stream-camera-of", str(tmp_path)]), log) is None
+    assert "cannot open it" in caplog.text
+
+
 def test_mapper_checkpoint_resume(dataset, tmp_path):
     from services.mapper.core import MapperCore, MapperServiceOptions
 

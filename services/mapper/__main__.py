@@ -25,7 +25,7 @@ from services.mapper.core import (
 )
 from services.mapper.intake import FRAME_BYTES, FRAME_CAPACITY, book_for, frame_rank, inbox_frames_ok, inbox_mib_ok
 from services.process import (FirstMessage, add_first_message_arg, add_stream_camera_arg, available_cpus, run_main,
-                              service_parser, set_torch_threads, setup_logging)
+                              service_parser, set_torch_threads, setup_logging, stream_camera)
 from services.transport import Service
 from services.zenoh_session import add_common_args
 
@@ -132,7 +132,7 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args, book=None) -> int
                       should_stop=lambda: svc.shutdown.requested, book=book)
     core.backlog = lambda: svc.inbox.size("frames")
     core.stream_idle = lambda: svc.inbox.idle("frames")
-    core.expected_camera = args.stream_camera
+    core.expected_camera = stream_camera(args, svc.log)
     if opts.resume and core.load_checkpoint():
         svc.log.info("resumed from %s at frame %d (field version %d)", core.resumed_from, core.ack, core.version)
     keys = svc.keys

@@ -13,7 +13,7 @@ import logging
 from fmapping.runtime import limit_blas_threads, retain_freed_memory, single_malloc_arena
 from services.core_support import MIB
 from services.process import (FirstMessage, add_first_message_arg, add_stream_camera_arg, run_main, service_parser,
-                              set_torch_threads, setup_logging)
+                              set_torch_threads, setup_logging, stream_camera)
 from services.tracker.core import TrackerCore, TrackerServiceOptions, load_tracker_config
 from services.transport import Service
 from services.zenoh_session import add_common_args, query_latest
@@ -86,7 +86,7 @@ def serve(svc: Service, cfg, opts: TrackerServiceOptions, args) -> int:
     core = TrackerCore(cfg, opts, counters=svc.counters, on_bad_input=svc.report_bad_input)
     core.backlog = lambda: svc.inbox.size("frames")
     core.stream_idle = lambda: svc.inbox.idle("frames")
-    core.expected_camera = args.stream_camera
+    core.expected_camera = stream_camera(args, svc.log)
     keys = svc.keys
     # checked before queueing: a bad or implausible message never displaces a real one
     svc.subscribe_control()
