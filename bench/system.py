@@ -524,7 +524,9 @@ def run_slam_baseline(scene: Path, out: Path, mapper_cfg: dict, threads: int) ->
     out.mkdir(parents=True)
     cfg = out / "slam.yaml"
     cfg.write_text(yaml.safe_dump({"mapper": mapper_cfg}, sort_keys=False))
-    env = dict(os.environ, OMP_NUM_THREADS=str(threads), PYTHONPATH=str(ROOT))
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    if threads > 0:  # 0: fmapping slam's own default
+        env["OMP_NUM_THREADS"] = str(threads)
     t = time.monotonic()
     print(f"[system] fmapping slam baseline (out {out}) ...", flush=True)
     rc = subprocess.run([sys.executable, "-m", "fmapping.cli", "slam", "--data", str(scene), "--out", str(out),
@@ -681,7 +683,10 @@ def main(argv=None) -> int:
                     help="mapper init_iters_per_round (default: the library's)")
     ap.add_argument("--mapper-set", default=None,
                     help="YAML mapping of mapper overrides: '{init_iters_per_round: 75, field: {init_opacity: 0}}'")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads of the mapper and the tracker")
+    ap.add_argument("--threads", type=int, default=0,
+                    help="torch threads of the mapper and the tracker (0: each service's default, as fmapping up: the "
+                         "tracker 1, the mapper every core under its SCHED_IDLE policy; the tables before 2026-12-07 "
+                         "were measured with 1)")
     ap.add_argument("--insecure", action="store_true",
                     help="the open loopback mesh (zenoh shared memory on) instead of fmapping up's secure default")
     ap.add_argument("--interval", type=float, default=0.5, help="seconds between samples")

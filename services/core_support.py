@@ -141,7 +141,7 @@ class ServiceCore:
         ``expected_camera`` when that is set."""
         try:
             if self.camera_dict is None:
-                if self.expected_camera is not None and f.camera != self.expected_camera:
+                if self.expected_camera is not None and not camera_matches(f.camera, self.expected_camera):
                     raise ValueError(f"camera {f.camera} is not the run's camera {self.expected_camera}")
                 return usable_camera(f.camera, undistorted)
             if f.camera != self.camera_dict:
@@ -150,6 +150,12 @@ class ServiceCore:
             self.bad_input(f"frame {f.seq}: {e}", "rejected_frames")
             return None
         return self.camera_dict
+
+
+def camera_matches(camera: Any, expected: dict) -> bool:
+    """Whether a frame's camera dict has every key of ``expected`` with its value (a live run's expected camera
+    has no size: the device tells it)."""
+    return isinstance(camera, dict) and all(k in camera and camera[k] == v for k, v in expected.items())
 
 
 def seq_problem(msg: Any, head: int) -> str:

@@ -12,6 +12,7 @@ import signal
 import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any, Callable, Optional
 
 from fmapping.cli import DefaultsHelp
@@ -59,6 +60,15 @@ def available_cpus() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
         return os.cpu_count() or 1
+
+
+def runs_idle() -> bool:
+    """Whether this process runs under the SCHED_IDLE policy (``fmapping up`` starts the mapper and the viewer so:
+    they get only the CPU time nothing else wants, and may then use every core)."""
+    try:
+        return os.sched_getscheduler(0) == os.SCHED_IDLE
+    except (AttributeError, OSError):  # not Linux
+        return False
 
 
 def set_torch_threads(n: int, auto: int) -> int:
@@ -160,9 +170,27 @@ def camera_json(text: str) -> dict:
         cam = json.loads(text)
     except ValueError as e:
         raise argparse.ArgumentTypeError(f"not JSON: {e}") from None
-    if not isinstance(cam, dict) or not {"fx", "fy", "cx", "cy", "width", "height"} <= set(cam):
-        raise argparse.ArgumentTypeError("a JSON object with fx, fy, cx, cy, width, height (a frame's camera)")
+    if not isinstance(cam, dict) or not {"fx", "fy", "cx", "cy"} <= set(cam):
+        raise argparse.ArgumentTypeError("a JSON object with fx, fy, cx, cy (and width, height: a frame's camera)")
     return cam
+
+
+def live_stream_camera(camera: Optional[str]) -> Optional[str]:
+    """``--stream-camera`` for a live camera (``camera:N``), as JSON: the intrinsics of its ``--camera
+    fx,fy,cx,cy[,dist]`` string as play's frames carry them (undistorted: ``dist`` None), without the size, which
+    only the device knows once open (:func:`services.core_support.camera_matches` checks the keys given). None for
+    a calibration file or no camera: the first frame then fixes the stream's camera."""
+    import json
+
+    from fmapping.camera import PinholeCamera
+
+    if not camera or Path(camera).exists():
+        return None
+    try:
+        cam = PinholeCamera.from_string(camera, 1 << 20, 1 << 20).undistorted().to_dict()  # any size: not compared
+    except ValueError:
+        return None
+    return json.dumps({k: cam[k] for k in ("fx", "fy", "cx", "cy", "dist")})
 
 
 def add_stream_camera_arg(p: argparse.ArgumentParser) -> None:

@@ -358,6 +358,40 @@ def test_given_the_runs_camera_a_hostile_first_frame_cannot_fix_the_stream(datas
         camera_json('{"fx": 1}')
 
 
+def test_a_live_runs_camera_is_checked_by_its_intrinsics(dataset):
+    """A live camera (``camera:N``) has no size before play opens the device: fmapping up passes the intrinsics of
+    its ``--camera`` string alone. Frames as play builds them from the device (any size, undistorted) pass; a
+    hostile first frame with other intrinsics is refused; a calibration file leaves the check off."""
+    import json
+
+    from fmapping.camera import PinholeCamera
+    from fmapping.datasets.video import frame_from_bgr
+    from services.core_support import camera_matches
+    from services.process import live_stream_camera
+    from services.tracker.core import TrackerCore, TrackerServiceOptions
+
+    spec = "300,310,159.5,119.5,0.1,-0.05,0,0"
+    expected = json.loads(live_stream_camera(spec))
+    assert set(expected) == {"fx", "fy", "cx", "cy", "dist"} and expected["dist"] is None
+    raw = PinholeCamera.from_string(spec, 320, 240)  # as LiveCamera resolves it once the device gives a frame
+    sent = [P.decode(P.encode(P.frame_from_dataset(frame_from_bgr(np.full((240, 320, 3), 90 + 40 * i, np.uint8), i,
+                                                                   float(i), raw, raw.undistorted(), "camera:0"))))
+            for i in range(2)]
+    assert camera_matches(sent[0].camera, expected)
+    assert not camera_matches(sent[0].camera, json.loads(live_stream_camera("300,310,160,119.5")))
+    assert not camera_matches(None, expected)
+    assert live_stream_camera(None) is None and live_stream_camera("not numbers") is None
+    assert live_stream_camera(str(dataset.root)) is None  # a path (a calibration file): no check
+
+    tracker = TrackerCore(opts=TrackerServiceOptions())
+    tracker.expected_camera = expected
+    hostile = P.Frame(seq=10**9, timestamp=0.0, rgb=np.zeros((8, 8, 3), np.uint8),
+                      camera={"fx": 10.0, "fy": 10.0, "cx": 4.0, "cy": 4.0, "width": 8, "height": 8, "dist": None})
+    assert tracker.frame_camera(hostile) is None
+    assert tracker.counters.get("rejected_frames") == 1
+    assert tracker.frame_camera(sent[0]) == sent[0].camera
+
+
 def test_stream_camera_of_a_dataset_is_the_camera_play_sends(scene, tmp_path, caplog):
     """``--stream-camera-of DATA`` (docker compose: /data) gives the camera of the frames io play sends from DATA;
     a folder that is no dataset leaves the check off, with a warning."""

@@ -133,22 +133,29 @@ def test_a_service_process_shares_the_launchers_session_in_a_group_of_its_own_at
     """A child started as the launcher starts services: its own process group (a terminal's Ctrl-C reaches
     only the launcher), the launcher's session (with autogroup scheduling each session is scheduled as one
     group, so a session of its own would make its nice value meaningless against the other services), and
-    its nice value lowered by the increment."""
+    its nice value lowered by the increment; the mapper and the viewer under SCHED_IDLE (a tracker woken by a frame
+    preempts them at once), the camera's path (play, tracker) under the normal policy."""
     probe = ("import json, os\n"
              "def autogroup():\n"
              "    try:\n"
              "        return open('/proc/self/autogroup').read().split()[0]\n"
              "    except (OSError, IndexError):\n"
              "        return None\n"
-             "print(json.dumps([os.getpid(), os.getpgrp(), os.getsid(0), os.nice(0), autogroup()]))\n")
-    proc = supervise.Proc("view", [sys.executable, "-c", probe], tmp_path, dict(os.environ))
-    rc = proc.popen.wait(timeout=60)
-    log = proc.log_path.read_text()
-    assert rc == 0, log
-    pid, pgrp, sid, nice, group = json.loads(log.strip().splitlines()[-1])
-    assert pgrp == pid != os.getpgrp()
-    assert sid == os.getsid(0)
-    assert nice == min(os.nice(0) + supervise.NICE["view"], 19)
+             "print(json.dumps([os.getpid(), os.getpgrp(), os.getsid(0), os.nice(0), autogroup(),\n"
+             "                  os.sched_getscheduler(0)]))\n")
+    policies = {}
+    for name in ("view", "tracker"):
+        proc = supervise.Proc(name, [sys.executable, "-c", probe], tmp_path, dict(os.environ))
+        rc = proc.popen.wait(timeout=60)
+        log = proc.log_path.read_text()
+        proc.close()
+        assert rc == 0, log
+        pid, pgrp, sid, nice, group, policies[name] = json.loads(log.strip().splitlines()[-1])
+        assert pgrp == pid != os.getpgrp()
+        assert sid == os.getsid(0)
+        assert nice == min(os.nice(0) + supervise.NICE.get(name, 0), 19)
+    assert "view" in supervise.IDLE and "tracker" not in supervise.IDLE and "play" not in supervise.IDLE
+    assert policies == {"view": os.SCHED_IDLE, "tracker": os.sched_getscheduler(0)}
     try:
         mine = Path("/proc/self/autogroup").read_text().split()[0]
     except (OSError, IndexError):  # no autogroup here (or not readable): nothing to compare

@@ -33,32 +33,40 @@ FINAL_CODES = (2, 3)  # bad input, gave up waiting (services.process.EXIT_STALLE
 # 10 / 10 / 15 tracked 624 / 675 -> 740 / 795 frames (the rest skipped to keep pace), pose latency median
 # 0.156 / 0.113 -> 0.076 / 0.055 s, p95 0.446 / 0.636 -> 0.428 / 0.271 s; map after the Sim3 94.4-95.2 -> 95.5-96.1 %.
 NICE = {"mapper": 10, "record": 10, "view": 15}
+# ... and the mapper and the viewer under SCHED_IDLE: they run on what the camera's path leaves, and a tracker waking
+# for a frame preempts them at once (a nice value only weighs their shares: the woken tracker still waited for the
+# mapper's time slice). 200 frames at 30 fps, six alternated pairs (bench/results/sched_idle_2026-12-07/): pose
+# latency p95 once tracking 0.147-0.823 s (median 0.23) -> 0.065-0.277 s (median 0.10), frames tracked 105-158 ->
+# 117-193 of 200, the mapper's init 8.8-11.3 -> 8.6-10.7 s, map after the Sim3 93.7-94.5 -> 92.1-95.1 %.
+IDLE = ("mapper", "view")
 
 
-def _child_setup(increment: int):
+def _child_setup(increment: int, idle: bool = False):
     """A ``preexec_fn``: the child gets a process group of its own (a Ctrl-C in the terminal reaches only the
     launcher, which stops the services in order) and a CPU priority lowered by ``increment``.
 
     A process group, not a session: with the kernel's autogroup scheduling (``sched_autogroup_enabled``, on by
     default) every session is scheduled as one group with an equal share of the CPU, and nice values only rank
     processes within a session. Services in sessions of their own got equal shares whatever their nice value:
-    a busy mapper took a full core from the tracker."""
+    a busy mapper took a full core from the tracker. ``idle``: the SCHED_IDLE policy as well (:data:`IDLE`)."""
     def setup() -> None:
         try:
             os.setpgid(0, 0)
             if increment > 0:
                 os.nice(increment)
+            if idle and hasattr(os, "SCHED_IDLE"):
+                os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
         except OSError:
             pass
     return setup
 
 
 class Proc:
-    """One child service process with its log file and status file (CPU priority by :data:`NICE`)."""
+    """One child service process with its log file and status file (CPU priority by :data:`NICE` and :data:`IDLE`)."""
 
     def __init__(self, name: str, argv: list[str], out: Path, env: dict):
         self.name = name
-        self._preexec = _child_setup(NICE.get(name, 0))
+        self._preexec = _child_setup(NICE.get(name, 0), name in IDLE)
         self.status_file = out / "status" / f"{name}.json"
         self.log_path = out / "logs" / f"{name}.log"
         self.log_path.parent.mkdir(parents=True, exist_ok=True)

@@ -24,7 +24,7 @@ from services.launcher.commands import (EXTERNAL_SOURCE, MONO_BOOTSTRAP_WINDOW, 
                                         view_argv, view_mode)
 from services.launcher.resume import keep_logs, resume_args, save_run_args, start_over
 from services.launcher.supervise import Proc, linger, monitor, stop_all, wait_ready, write_summary
-from services.process import command_line
+from services.process import command_line, live_stream_camera
 from services.zenoh_session import free_port
 
 
@@ -185,8 +185,9 @@ def run_up(args) -> int:
     # errors in data or configs: before any process
     info = run_info(data, poses, mapper_cfg, tracker_cfg, opts, camera, source_options(args))
     # the camera play's frames carry (the data's, as play opens it): the mapper and the tracker refuse a first frame
-    # with another one, so that a peer gone wrong cannot fix the stream's camera before play's first frame
-    stream_camera = None if live else json.dumps(info["dataset"]["camera"])
+    # with another one, so that a peer gone wrong cannot fix the stream's camera before play's first frame (a live
+    # camera: the intrinsics of its --camera string, the size being the device's)
+    stream_camera = live_stream_camera(camera) if live else json.dumps(info["dataset"]["camera"])
     started = time.time()
     if resuming:
         print(f"fmapping up: resuming the run in {out}: the mapper from its checkpoint, play from the first frame "

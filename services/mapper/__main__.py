@@ -25,7 +25,7 @@ from services.mapper.core import (
 )
 from services.mapper.intake import FRAME_BYTES, FRAME_CAPACITY, book_for, frame_rank, inbox_frames_ok, inbox_mib_ok
 from services.process import (FirstMessage, add_first_message_arg, add_stream_camera_arg, available_cpus, run_main,
-                              service_parser, set_torch_threads, setup_logging, stream_camera)
+                              runs_idle, service_parser, set_torch_threads, setup_logging, stream_camera)
 from services.transport import Service
 from services.zenoh_session import add_common_args
 
@@ -78,7 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"MiB of frames the inbox holds at most (default {FRAME_BYTES // MIB})")
     p.add_argument("--device", default=None, help="torch device (default: the config's, 'auto')")
     p.add_argument("--threads", type=int, default=0,
-                   help="torch threads (0 = auto: half the CPUs this process may use, at least 1)")
+                   help="torch threads (0 = auto: half the CPUs this process may use, at least 1; all of them "
+                        "under the SCHED_IDLE policy, as fmapping up starts it)")
     p.add_argument("--linger", action="store_true", help="after the end, keep answering map/latest until SIGTERM")
     add_first_message_arg(p, "frame")
     add_stream_camera_arg(p)
@@ -98,7 +99,10 @@ def main(argv=None, session=None, keys=None) -> int:
         parser.error(f"--inbox-frames must be >= 1 and --inbox-mb > 0 and finite (got {args.inbox_frames}, "
                      f"{args.inbox_mb})")
     setup_logging(args.log_level, "mapper")
-    threads = set_torch_threads(args.threads, auto=available_cpus() // 2)
+    # under SCHED_IDLE (fmapping up) the mapper runs only on what the camera's path leaves: every core, then. 200 frames
+    # at 30 fps, four alternated pairs (bench/results/sched_idle_2026-12-07/): 1 -> 2 threads ended the run 98-112 ->
+    # 82-92 s after playback, at the same pose latency p95 (0.079-0.178 -> 0.089-0.119 s), init and map
+    threads = set_torch_threads(args.threads, auto=available_cpus() if runs_idle() else available_cpus() // 2)
     log = logging.getLogger("fmapping.mapper")
     log.info("torch threads: %d", threads)
     # before the service has a status (play waits for it): the first optimiser's imports, not in the init
