@@ -78,8 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"MiB of frames the inbox holds at most (default {FRAME_BYTES // MIB})")
     p.add_argument("--device", default=None, help="torch device (default: the config's, 'auto')")
     p.add_argument("--threads", type=int, default=0,
-                   help="torch threads (0 = auto: half the CPUs this process may use, at least 1; all of them "
-                        "under the SCHED_IDLE policy, as fmapping up starts it)")
+                   help="torch threads (0 = auto: half the CPUs this process may use, at least 1; under the "
+                        "SCHED_IDLE policy, as fmapping up starts it, all of them for the closing stage)")
     p.add_argument("--linger", action="store_true", help="after the end, keep answering map/latest until SIGTERM")
     add_first_message_arg(p, "frame")
     add_stream_camera_arg(p)
@@ -99,10 +99,7 @@ def main(argv=None, session=None, keys=None) -> int:
         parser.error(f"--inbox-frames must be >= 1 and --inbox-mb > 0 and finite (got {args.inbox_frames}, "
                      f"{args.inbox_mb})")
     setup_logging(args.log_level, "mapper")
-    # under SCHED_IDLE (fmapping up) the mapper runs only on what the camera's path leaves: every core, then. 200 frames
-    # at 30 fps, four alternated pairs (bench/results/sched_idle_2026-12-07/): 1 -> 2 threads ended the run 98-112 ->
-    # 82-92 s after playback, at the same pose latency p95 (0.079-0.178 -> 0.089-0.119 s), init and map
-    threads = set_torch_threads(args.threads, auto=available_cpus() if runs_idle() else available_cpus() // 2)
+    threads = set_torch_threads(args.threads, auto=available_cpus() // 2)
     log = logging.getLogger("fmapping.mapper")
     log.info("torch threads: %d", threads)
     # before the service has a status (play waits for it): the first optimiser's imports, not in the init
@@ -137,6 +134,12 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args, book=None) -> int
     core.backlog = lambda: svc.inbox.size("frames")
     core.stream_idle = lambda: svc.inbox.idle("frames")
     core.expected_camera = stream_camera(args, svc.log)
+    # under SCHED_IDLE (fmapping up) the mapper runs on what the camera's path leaves. While the stream runs that is
+    # about one core here: a second torch thread, starved by the tracker, held the first at every parallel loop
+    # (1,000 frames at 30 fps: init 32.7 s). Once the stream has ended the cores are free and the closing stage takes
+    # them all (200 frames at 30 fps, 4 alternated pairs with 2 threads throughout: the run ended 98-112 -> 82-92 s
+    # after playback; bench/results/sched_idle_2026-12-07/)
+    closing_threads = available_cpus() if getattr(args, "threads", 1) == 0 and runs_idle() else 0
     if opts.resume and core.load_checkpoint():
         svc.log.info("resumed from %s at frame %d (field version %d)", core.resumed_from, core.ack, core.version)
     keys = svc.keys
@@ -193,6 +196,8 @@ def serve(svc: Service, cfg, opts: MapperServiceOptions, args, book=None) -> int
                             and not svc.shutdown.requested:
                         svc.log.warning("the pose source (%s) did not report done within %.0f s of the stop: "
                                         "closing with the poses at hand", opts.pose_source, args.source_final_timeout)
+                    if closing_threads and not svc.shutdown.requested:
+                        svc.log.info("closing stage: torch threads %d", set_torch_threads(closing_threads, 1))
                 publish(core.on_source_status(msg) if channel == "status" else core.apply(msg))
             publish(core.tick())
         except Cancelled:
