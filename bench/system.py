@@ -684,9 +684,9 @@ def main(argv=None) -> int:
     ap.add_argument("--mapper-set", default=None,
                     help="YAML mapping of mapper overrides: '{init_iters_per_round: 75, field: {init_opacity: 0}}'")
     ap.add_argument("--threads", type=int, default=0,
-                    help="torch threads of the mapper and the tracker (0: each service's default, as fmapping up: the "
-                         "tracker 1, the mapper every core under its SCHED_IDLE policy; the tables before 2026-12-07 "
-                         "were measured with 1)")
+                    help="torch threads of the mapper and the tracker (0: each service's default, as fmapping up: "
+                         "1 each, the mapper every core for its closing stage; the tables before 2026-12-07 were "
+                         "measured with 1)")
     ap.add_argument("--insecure", action="store_true",
                     help="the open loopback mesh (zenoh shared memory on) instead of fmapping up's secure default")
     ap.add_argument("--interval", type=float, default=0.5, help="seconds between samples")

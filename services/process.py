@@ -64,7 +64,7 @@ def available_cpus() -> int:
 
 def runs_idle() -> bool:
     """Whether this process runs under the SCHED_IDLE policy (``fmapping up`` starts the mapper and the viewer so:
-    they get only the CPU time nothing else wants, and may then use every core)."""
+    they get only the CPU time nothing else wants)."""
     try:
         return os.sched_getscheduler(0) == os.SCHED_IDLE
     except (AttributeError, OSError):  # not Linux
