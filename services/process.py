@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import faulthandler
+import json
 import logging
 import os
 import signal
@@ -164,8 +165,6 @@ def add_first_message_arg(p: argparse.ArgumentParser, what: str) -> None:
 
 def camera_json(text: str) -> dict:
     """``--stream-camera``'s value: a JSON object (a Frame's camera dict), an argparse error otherwise."""
-    import json
-
     try:
         cam = json.loads(text)
     except ValueError as e:
@@ -180,8 +179,6 @@ def live_stream_camera(camera: Optional[str]) -> Optional[str]:
     fx,fy,cx,cy[,dist]`` string as play's frames carry them (undistorted: ``dist`` None), without the size, which
     only the device knows once open (:func:`services.core_support.camera_matches` checks the keys given). None for
     a calibration file or no camera: the first frame then fixes the stream's camera."""
-    import json
-
     from fmapping.camera import PinholeCamera
 
     if not camera or Path(camera).exists():
