@@ -72,6 +72,27 @@ def runs_idle() -> bool:
         return False
 
 
+def enter_sched_idle() -> bool:
+    """Put every thread of this process under the SCHED_IDLE policy (threads started later inherit it from their
+    creator). Returns whether this thread now runs so (False where the policy does not exist: not Linux).
+
+    A service asks for it once started (``--sched-idle``, :meth:`services.transport.Service.start`), not from the
+    launcher before it runs: under SCHED_IDLE from its first instruction, a mapper on a machine whose cores were
+    busy with other work got almost no CPU for its imports and did not start within the launcher's 120 s."""
+    if not hasattr(os, "SCHED_IDLE"):
+        return False
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        tids = [0]
+    for tid in tids:
+        try:
+            os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
+        except OSError:  # a thread that has just ended
+            pass
+    return runs_idle()
+
+
 def set_torch_threads(n: int, auto: int) -> int:
     """``--threads``: torch intra-op threads, ``auto`` when ``n`` is 0 (at least 1). Returns the count.
 

@@ -259,6 +259,10 @@ class Service:
         self.status.update(state=state)
         self.publish_status()
         self.start_heartbeat()
+        if getattr(self.args, "sched_idle", False):  # its start-up ran at the launcher's priority
+            from services.process import enter_sched_idle
+
+            self.log.info("under SCHED_IDLE from here on: %s", enter_sched_idle())
 
     def start_heartbeat(self) -> None:
         interval = float(getattr(self.args, "status_interval", 0.5) or 0.5)

@@ -61,6 +61,9 @@ def add_common_args(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     g.add_argument("--status-file", default=None, help="also write the status as JSON to this file (atomically)")
     g.add_argument("--status-interval", type=float, default=0.5, help="heartbeat period in seconds")
     g.add_argument("--exit-with-parent", action="store_true", help="stop when the parent process goes away")
+    g.add_argument("--sched-idle", action="store_true",
+                   help="once started (its first status out), run under the SCHED_IDLE policy: only on the CPU time "
+                        "nothing else wants (fmapping up starts the mapper and the viewer so)")
     g.add_argument("--log-level", default=os.environ.get("FMAPPING_LOG", "INFO"), help=LOG_LEVEL_HELP)
     return p
 

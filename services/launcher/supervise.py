@@ -38,35 +38,36 @@ NICE = {"mapper": 10, "record": 10, "view": 15}
 # mapper's time slice). 200 frames at 30 fps, six alternated pairs (bench/results/sched_idle_2026-12-07/): pose
 # latency p95 once tracking 0.147-0.823 s (median 0.23) -> 0.065-0.277 s (median 0.10), frames tracked 105-158 ->
 # 117-193 of 200, the mapper's init 8.8-11.3 -> 8.6-10.7 s, map after the Sim3 93.7-94.5 -> 92.1-95.1 %.
+# A service enters SCHED_IDLE itself once started (``--sched-idle``, which the launcher passes them): under it from
+# its first instruction, a mapper on a machine whose cores were busy with other work got almost no CPU for its
+# imports and did not start within the launcher's 120 s. Its start-up runs at its nice value.
 IDLE = ("mapper", "view")
 
 
-def _child_setup(increment: int, idle: bool = False):
+def _child_setup(increment: int):
     """A ``preexec_fn``: the child gets a process group of its own (a Ctrl-C in the terminal reaches only the
     launcher, which stops the services in order) and a CPU priority lowered by ``increment``.
 
     A process group, not a session: with the kernel's autogroup scheduling (``sched_autogroup_enabled``, on by
     default) every session is scheduled as one group with an equal share of the CPU, and nice values only rank
     processes within a session. Services in sessions of their own got equal shares whatever their nice value:
-    a busy mapper took a full core from the tracker. ``idle``: the SCHED_IDLE policy as well (:data:`IDLE`)."""
+    a busy mapper took a full core from the tracker."""
     def setup() -> None:
         try:
             os.setpgid(0, 0)
             if increment > 0:
                 os.nice(increment)
-            if idle and hasattr(os, "SCHED_IDLE"):
-                os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
         except OSError:
             pass
     return setup
 
 
 class Proc:
-    """One child service process with its log file and status file (CPU priority by :data:`NICE` and :data:`IDLE`)."""
+    """One child service process with its log file and status file (CPU priority by :data:`NICE`)."""
 
     def __init__(self, name: str, argv: list[str], out: Path, env: dict):
         self.name = name
-        self._preexec = _child_setup(NICE.get(name, 0), name in IDLE)
+        self._preexec = _child_setup(NICE.get(name, 0))
         self.status_file = out / "status" / f"{name}.json"
         self.log_path = out / "logs" / f"{name}.log"
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
@@ -289,4 +290,8 @@ def stop_all(procs: dict[str, Proc], grace: float, first: tuple) -> None:
         except subprocess.TimeoutExpired:
             print(f"fmapping up: {p.name} did not stop within {grace:.0f} s: killing it", file=sys.stderr, flush=True)
             p.popen.kill()
-            p.popen.wait(timeout=5)
+            try:  # a process dies when it next runs: a SCHED_IDLE one on a busy machine may take a while
+                p.popen.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                print(f"fmapping up: {p.name} (pid {p.popen.pid}) has not ended 5 s after SIGKILL; going on",
+                      file=sys.stderr, flush=True)

@@ -23,7 +23,7 @@ from services.launcher.commands import (EXTERNAL_SOURCE, MONO_BOOTSTRAP_WINDOW, 
                                         play_source, play_wait_for, resend_to, service_command, tracker_state,
                                         view_argv, view_mode)
 from services.launcher.resume import keep_logs, resume_args, save_run_args, start_over
-from services.launcher.supervise import Proc, linger, monitor, stop_all, wait_ready, write_summary
+from services.launcher.supervise import IDLE, Proc, linger, monitor, stop_all, wait_ready, write_summary
 from services.process import command_line, live_stream_camera
 from services.zenoh_session import free_port
 
@@ -161,12 +161,13 @@ def run_up(args) -> int:
     def net(role: str) -> dict:
         """The network options of ``role``. Secure: its client config (its credentials, the run's router).
         --insecure: listen on a fresh loopback port and connect to every process started before (explicit mesh)."""
+        idle = {"sched_idle": role in IDLE}  # once started, it runs on the CPU time nothing else wants
         if creds is not None:
-            return {"zenoh_config": str(creds.config(role)), "ns": ns}
+            return {"zenoh_config": str(creds.config(role)), "ns": ns, **idle}
         ep = f"tcp/127.0.0.1:{free_port()}"
         peers = extra_connect + mesh
         mesh.append(ep)
-        return {"listen": ep, "ns": ns, "connect": ",".join(peers) if peers else None}
+        return {"listen": ep, "ns": ns, "connect": ",".join(peers) if peers else None, **idle}
     env = dict(os.environ)
     root = str(Path(__file__).resolve().parents[2])
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
