@@ -633,7 +633,7 @@ class Bench:
     # -- 4. synthetic rooms
     def _synth(self, seed: int) -> tuple[Path, str]:
         frames, size = (40, (160, 120)) if self.a.quick else (200, (320, 240))
-        return synth_scene(Path(self.a.scenes), seed, frames, size, "wide")
+        return synth_scene(Path(self.a.scenes), seed, frames, size, self.a.variety)
 
     def _per_seed(self, row: str, variant: str, one) -> None:
         """``one(seed, data, variety)`` for every seed; a failing seed is recorded and the others run."""
@@ -841,6 +841,8 @@ def main(argv=None) -> int:
                     help="comma list of before, after, each optionally with +key=value mapper overrides "
                          "(after+distortion_weight=0.01; the default adds the VM field beside the CP default)")
     ap.add_argument("--seeds", type=int, nargs="+", default=None, help="synthetic seeds (default 0-4; --quick 0 1)")
+    ap.add_argument("--variety", default="wide", choices=["wide", "default"],
+                    help="the synthetic rows' rooms: the widened generator (the issue's) or the default one")
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
     ap.add_argument("--out", default=None, help="JSON (default bench/results/real.json; --quick /tmp/real_quick.json)")
     ap.add_argument("--scenes", default=str(Path(tempfile.gettempdir()) / "fmapping_real_scenes"),

@@ -56,6 +56,15 @@ class MapperConfig:
     lr_grid: float = 0.02
     lr_decoder: float = 0.001
     lr_pose: float = 0.001
+    # coarse-to-fine steps on the factor lines: each line also moves through a coarse copy of this many nodes per axis
+    # (linearly interpolated onto its own nodes; 0: off), so the low frequencies settle first (fmapping.mapping.coarse).
+    # fmapping map --poses gt, RGB only, completion ratio, off -> 16 (bench/results/coarse_lines_2026-12-07/):
+    # wide synthetic seeds 0-4 67.9/67.3/77.0/63.8/64.0 -> 73.6/77.1/72.9/78.8/78.9 % (accuracy mean 10.8 -> 7.5 cm),
+    # default rooms 96.1/95.3 -> 97.9/96.9 %, TUM fr1_rpy 17.4 -> 17.7 dB, but 7-Scenes dev 52.3 -> 43.1 % (10.9 ->
+    # 13.6 cm) and lego 21.9 -> 21.6 dB: off by default, the real kitchen is worse with it
+    coarse_nodes: int = 0
+    coarse_lr_scale: float = 1.0
+    coarse_lines: str = "both"  # which factor lines get coarse steps: "both" | "density" | "appearance"
     # after the init, every update (window, closing) also refines the poses of its frames (frame 0 fixed): se(3)
     # corrections on the camera side, folded into the poses after each update. For external poses with per-frame
     # noise (tests: 0.93 -> 0.38 deg). Off by default: it does not fix a trajectory's slow drift. 7-Scenes dev,
@@ -167,6 +176,14 @@ class MapperConfig:
             raise ValueError(f"MapperConfig.consistency_blur must be >= 0, got {self.consistency_blur}")
         if self.warp_depth not in ("far", "expected"):
             raise ValueError(f"MapperConfig.warp_depth must be 'far' or 'expected', got {self.warp_depth!r}")
+        if self.coarse_nodes != 0 and not 2 <= self.coarse_nodes <= self.field.resolution:
+            raise ValueError(f"MapperConfig.coarse_nodes must be 0 (off) or 2..field.resolution "
+                             f"({self.field.resolution}), got {self.coarse_nodes}")
+        if self.coarse_lines not in ("both", "density", "appearance"):
+            raise ValueError(f"MapperConfig.coarse_lines must be 'both', 'density' or 'appearance', got "
+                             f"{self.coarse_lines!r}")
+        if not self.coarse_lr_scale > 0:
+            raise ValueError(f"MapperConfig.coarse_lr_scale must be > 0, got {self.coarse_lr_scale}")
         if not 0 < self.near < self.far:
             raise ValueError(f"MapperConfig: need 0 < near < far, got near={self.near}, far={self.far}")
         if self.rays_per_iter < 1 or self.init_rays_per_iter < 1 or self.n_coarse < 2:

@@ -58,6 +58,7 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
         self.aabb: Optional[Tensor] = None
         self.field = None
         self._opt: Optional[torch.optim.Optimizer] = None
+        self._coarse = None  # the factor lines' coarse companions (cfg.coarse_nodes; fmapping.mapping.coarse)
         self._pose_corr: Optional[torch.nn.Parameter] = None
         self._gen = torch.Generator().manual_seed(int(cfg.seed))
         # frames
@@ -441,6 +442,8 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
         self.aabb = self.field.aabb.detach().clone()
         for p in self.field.grid_parameters():  # Adam's moments belonged to the old node positions
             self._opt.state.pop(p, None)
+        for c in (self._coarse.params() if self._coarse is not None else []):
+            self._opt.state.pop(c, None)
         self._box_refits += 1
 
 

@@ -55,6 +55,16 @@ class OptimisationStep:
         if cfg.refine_poses:  # frame 0 fixes the gauge; frames join as they come, like the exposures
             groups.append({"params": [p for i, p in sorted(self._pose_delta.items()) if p.requires_grad],
                            "lr": cfg.lr_pose_refine, "name": "pose_refine"})
+        self._coarse = None
+        if cfg.coarse_nodes > 0:
+            from fmapping.mapping.coarse import CoarseLines, is_line
+            names = {"both": ("density_lines", "app_lines"), "density": ("density_lines",),
+                     "appearance": ("app_lines",)}[cfg.coarse_lines]
+            lines = [getattr(self.field, n) for n in names if is_line(getattr(self.field, n, torch.empty(0)))]
+            if lines:
+                self._coarse = CoarseLines(lines, cfg.coarse_nodes)
+                groups.append({"params": self._coarse.params(), "lr": cfg.lr_grid * cfg.coarse_lr_scale,
+                               "name": "grid", "lr_scale": cfg.coarse_lr_scale})
         groups = [g for g in groups if g["params"] or g["name"] in ("exposure", "pose_refine")]
         self._opt = torch.optim.Adam(groups, betas=(0.9, 0.99))
 
@@ -208,7 +218,11 @@ class OptimisationStep:
             loss = loss + cfg.l1_weight * self.field.regularizer("l1")
         self._opt.zero_grad(set_to_none=True)
         loss.backward()
+        if self._coarse is not None:
+            self._coarse.set_grads()
         self._opt.step()
+        if self._coarse is not None:
+            self._coarse.fold()
         self._iterations += 1
         return {"loss": float(loss.detach()), "photo": float(photo.detach()), "warp": float(warp.detach()),
                 "pc": float(pc.detach()), "sparse": float(sparse_loss.detach()),
