@@ -196,6 +196,39 @@ def child_rss_mb() -> dict[str, float]:
     return out
 
 
+def child_cpu_s() -> dict[str, float]:
+    """CPU seconds (user + system, threads included) each service process started by this process has used so
+    far, by service name; empty without psutil."""
+    out: dict[str, float] = {}
+    try:
+        import psutil
+    except ImportError:
+        return out
+    for c in psutil.Process().children(recursive=True):
+        try:
+            name = _service_name(c.cmdline())
+            if name:
+                t = c.cpu_times()
+                out[name] = out.get(name, 0.0) + t.user + t.system
+        except (psutil.NoSuchProcess, psutil.AccessDenied, psutil.ZombieProcess):
+            pass
+    return out
+
+
+def cpu_shares(rows: list[dict], t_from, t_to) -> dict:
+    """Per service: the cores it used on average between the rows nearest times ``t_from`` and ``t_to`` (its CPU
+    seconds over the wall seconds; 1.0 = one core all the time). Empty without two such rows."""
+    if t_from is None or t_to is None:
+        return {}
+    span = [r for r in rows if r.get("cpu_s") and t_from <= r["t"] <= t_to]
+    if len(span) < 2 or span[-1]["t"] <= span[0]["t"]:
+        return {}
+    a, b = span[0], span[-1]
+    wall = b["t"] - a["t"]
+    return {n: round((b["cpu_s"][n] - a["cpu_s"].get(n, 0.0)) / wall, 2) for n in sorted(b["cpu_s"])
+            if n in a["cpu_s"]}
+
+
 # ---------------------------------------------------------------------------- zenoh monitor
 class Monitor:
     """A zenoh session of the run's; keeps the newest Status per service and the arrival time of each
@@ -317,6 +350,7 @@ def sample_row(mon: Monitor, t0: float, per_window: int) -> dict:
                        last_window_s=float(c.get("last_window_s", 0.0)))
         row["dropped"] = {n: _drops(n, s.counters) for n, s in st.items()}
     row["rss_mb"] = {k: round(v, 1) for k, v in child_rss_mb().items()}
+    row["cpu_s"] = {k: round(v, 2) for k, v in child_cpu_s().items()}
     row["loadavg1"] = round(os.getloadavg()[0], 2)
     return row
 
@@ -469,6 +503,10 @@ def summarize(fps: float, rows: list[dict], mon: Monitor, out: Path, scene: Path
     done_t = next((r["t"] for r in rows if r.get("mapper_state") == "done"), None)
     s["mapper"]["done_after_playback_s"] = round(done_t - play_end, 1) if done_t is not None and play_end else None
     s["loadavg1"] = _stats([r.get("loadavg1") for r in rows])
+    # cores each service used: over the playback, and from its start to the mapper's first update (the init)
+    init_t = next((r["t"] for r in rows if r.get("windows", 0) >= 1), None)
+    s["cpu_cores_during_playback"] = cpu_shares(rows, play_start, play_end)
+    s["cpu_cores_until_init_done"] = cpu_shares(rows, play_start, init_t)
     if s["playback_seconds"]:
         s["keyframes_per_s"] = round(len(mon.keyframes) / s["playback_seconds"], 2)
     # tracker ATE over its usable poses (seq = frame index: no looping)
