@@ -60,8 +60,8 @@ class MapperConfig:
     # (linearly interpolated onto its own nodes; 0: off), so the low frequencies settle first (fmapping.mapping.coarse).
     # fmapping map --poses gt, RGB only, completion ratio, off -> 16 (bench/results/coarse_lines_2026-12-07/):
     # wide synthetic seeds 0-4 67.9/67.3/77.0/63.8/64.0 -> 73.6/77.1/72.9/78.8/78.9 % (accuracy mean 10.8 -> 7.5 cm),
-    # default rooms 96.1/95.3 -> 97.9/96.9 %, TUM fr1_rpy 17.4 -> 17.7 dB, but 7-Scenes dev 52.3 -> 43.1 % (10.9 ->
-    # 13.6 cm) and lego 21.9 -> 21.6 dB: off by default, the real kitchen is worse with it
+    # default rooms 96.1/95.3 -> 97.9/96.9 %, TUM fr1_rpy 17.4 -> 17.7 dB, but 7-Scenes dev 52.3/53.3/48.8 ->
+    # 43.1/51.6/46.7 % (mapper seeds 0-2) and lego 21.9 -> 21.6 dB: off by default, the real kitchen is worse with it
     coarse_nodes: int = 0
     coarse_lr_scale: float = 1.0
     coarse_lines: str = "both"  # which factor lines get coarse steps: "both" | "density" | "appearance"
