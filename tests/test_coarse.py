@@ -101,3 +101,29 @@ def test_coarse_settings_out_of_range_are_refused_by_name():
         with pytest.raises(ValueError, match=match):
             merge(MapperConfig(), bad).validate()
     merge(MapperConfig(), {"coarse_nodes": 128}).validate()
+
+
+def test_a_state_saved_with_coarse_steps_resumes_with_them_and_names_the_mismatch_without(tmp_path):
+    """A mapper state saved with coarse steps loads into a mapper with the same setting (the coarse Adam moments
+    with it) and is refused, by name, by one without them."""
+    import pytest
+
+    from fmapping.config import merge
+    from fmapping.datasets import open_dataset
+    from fmapping.mapping import Mapper, MapperConfig
+    from fmapping.synthetic import generate_scene
+
+    generate_scene(tmp_path / "room", seed=1, frames=16, size=(64, 48), max_cloud_points=1000)
+    ds = open_dataset(tmp_path / "room")
+    over = {"init_iters_per_round": 2, "init_rays_per_iter": 64}
+    m = Mapper(merge(MapperConfig(), {**over, "coarse_nodes": 8}), ds.camera)
+    for i in range(len(ds)):
+        f = ds[i]
+        m.add_frame(f.rgb, f.c2w, f.timestamp)
+    state = m.state_dict()
+    same = Mapper(merge(MapperConfig(), {**over, "coarse_nodes": 8}), ds.camera)
+    same.load_state_dict(state)
+    moments = [same._opt.state[c]["exp_avg"] for c in same._coarse.params()]
+    torch.testing.assert_close(moments, [m._opt.state[c]["exp_avg"] for c in m._coarse.params()])
+    with pytest.raises(ValueError, match="coarse_nodes"):
+        Mapper(merge(MapperConfig(), over), ds.camera).load_state_dict(state)

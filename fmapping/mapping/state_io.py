@@ -98,7 +98,12 @@ class MapperStateIO:
                     self._freeze_decoder()
                 elif self._pose_corr is not None:
                     self._pose_corr.requires_grad_(False)
-            self._opt.load_state_dict(unpack_optimizer_state(d["optimizer"]))
+            try:
+                self._opt.load_state_dict(unpack_optimizer_state(d["optimizer"]))
+            except ValueError as e:  # torch: "loaded state dict has a different number of parameter groups"
+                raise ValueError(f"Mapper.load_state_dict: the saved optimiser state does not fit this mapper's config "
+                                 f"({e}): was it saved with other optimiser settings (coarse_nodes, refine_poses, "
+                                 f"exposure)?") from None
 
     def _frame_params(self, saved: dict) -> dict:
         """Per-frame parameters (exposures, pose corrections) of a state, in frame order (frame 0 fixed)."""
