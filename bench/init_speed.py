@@ -2,6 +2,7 @@
 
     python bench/init_speed.py                     # synthetic room seed 0, 320x240, 2 repetitions
     python bench/init_speed.py --reps 3 --seed 2 --variety wide
+    python bench/init_speed.py --data ../shared/data/7scenes_redkitchen_dev --mapper-seeds 0 1 2 --variants 1,2
 
 Issue 18 asks for an init of at most 5 s on 2 CPU cores at the quality of the init before (4 rounds x 75
 iterations x 1024 rays from a clear field, :data:`BEFORE`). Each variant is a set of
@@ -10,7 +11,10 @@ on the same 15 frames with GT poses and no depth. After the init it renders five
 views it has not seen (frames 17, 22, 27) and reports the median relative depth error against the scene's
 depth (evaluation only), PSNR, and the share of held-out pixels the map covers (``acc`` > 0.5; a pixel it does
 not cover counts as a relative error of 1). Writes ``bench/results/init_speed.json`` (``--out``); min and
-median over the repetitions.
+median over the repetitions. ``--mapper-seeds``: each variant runs once per mapper seed (its random rays) and the
+quality is the mean over them (one seed moves these numbers by about as much as the variants differ).
+``--data``: a dataset folder with depth (the depth for evaluation only) instead of a generated room, e.g. the
+7-Scenes dev clip (its depth is not registered with the colour: compare variants there, not absolute values).
 """
 from __future__ import annotations
 
@@ -39,6 +43,8 @@ VARIANTS = {
     "default, fog 0.5": {"field": {"init_opacity": 0.5}},
     "default, constant lr 0.02": {"init_lr_grid": 0.02},
     "before with the fog (4 x 75 x 1024, lr 0.02)": {**BEFORE, "field": {"init_opacity": 0.95}},
+    "default, 192 rays": {"init_rays_per_iter": 192},
+    "default, 256 rays": {"init_rays_per_iter": 256},
 }
 INIT_VIEWS, HELD_OUT = list(range(0, 15, 3)), [17, 22, 27]
 
@@ -77,12 +83,20 @@ def run_variant(frames, camera, overrides: dict) -> dict:
             "held_out": evaluate(m, frames, HELD_OUT)}
 
 
+def quality_mean(runs: list) -> dict:
+    """The mean of each quality figure over ``runs`` (one per mapper seed; the quality is deterministic)."""
+    return {part: {k: float(np.mean([r[part][k] for r in runs])) for k in runs[0][part]}
+            for part in ("init_views", "held_out")}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--variety", default="default", choices=["default", "wide"])
     ap.add_argument("--size", default="320x240")
     ap.add_argument("--reps", type=int, default=2)
+    ap.add_argument("--mapper-seeds", type=int, nargs="+", default=[0], help="MapperConfig.seed values (rays)")
+    ap.add_argument("--data", default=None, help="a dataset folder with depth instead of a generated room")
     ap.add_argument("--variants", default="", help="comma list of variant numbers (0-based) to run; default all")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--work", default=os.path.join(tempfile.gettempdir(), "fmapping_bench_init"))
@@ -98,8 +112,8 @@ def main(argv=None) -> int:
 
     preload_optimiser()  # the first optimiser's imports (1-2 s) out of the first variant's time, as the service does
     size = tuple(int(v) for v in a.size.split("x"))
-    data = Path(a.work) / f"scene_s{a.seed}_{a.variety}_{a.size}"
-    if not (data / "rgb.txt").exists():
+    data = Path(a.data) if a.data else Path(a.work) / f"scene_s{a.seed}_{a.variety}_{a.size}"
+    if not a.data and not (data / "rgb.txt").exists():
         print(f"[init] generating {data} ...", flush=True)
         generate_scene(data, seed=a.seed, frames=max(HELD_OUT) + 1, size=size, max_cloud_points=20000,
                        variety=a.variety)
@@ -110,20 +124,23 @@ def main(argv=None) -> int:
         names = [names[int(i)] for i in a.variants.split(",")]
     runs: dict = {name: [] for name in names}
     for rep in range(a.reps):
-        for name in names:
-            overrides = VARIANTS[name]
-            r = run_variant(frames, ds.camera, overrides)
-            runs[name].append(r)
-            iv = r["init_views"]
-            print(f"[init] rep {rep} {name:46s} {r['seconds']:5.1f} s | init views: depth rel "
-                  f"{iv['depth_rel_median']:.3f}, PSNR {iv['psnr']:.2f} | held out: depth rel "
-                  f"{r['held_out']['depth_rel_median']:.3f}, PSNR {r['held_out']['psnr']:.2f}, "
-                  f"covered {r['held_out']['coverage']:.2f}", flush=True)
+        for seed in a.mapper_seeds:
+            for name in names:
+                r = run_variant(frames, ds.camera, {**VARIANTS[name], "seed": seed})
+                r.update(rep=rep, mapper_seed=seed)
+                runs[name].append(r)
+                iv = r["init_views"]
+                print(f"[init] rep {rep} seed {seed} {name:46s} {r['seconds']:5.1f} s | init views: depth rel "
+                      f"{iv['depth_rel_median']:.3f}, PSNR {iv['psnr']:.2f} | held out: depth rel "
+                      f"{r['held_out']['depth_rel_median']:.3f}, PSNR {r['held_out']['psnr']:.2f}, "
+                      f"covered {r['held_out']['coverage']:.2f}", flush=True)
     summary = {name: {"seconds_min": min(r["seconds"] for r in rs),
                       "seconds_median": float(np.median([r["seconds"] for r in rs])),
+                      "quality_mean": quality_mean([r for r in rs if r["rep"] == 0]),
                       "overrides": VARIANTS[name], "runs": rs} for name, rs in runs.items()}
+    scene = {"data": str(data)} if a.data else {"seed": a.seed, "variety": a.variety, "size": a.size}
     res = {"machine": {"cpu": report.cpu_model(), "cpus": os.cpu_count(), "threads": a.threads},
-           "scene": {"seed": a.seed, "variety": a.variety, "size": a.size}, "variants": summary}
+           "scene": {**scene, "mapper_seeds": a.mapper_seeds}, "variants": summary}
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=1) + "\n")

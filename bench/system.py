@@ -421,6 +421,15 @@ def _stats(xs) -> Optional[dict]:
             "max": round(float(a.max()), 3), "n": int(a.size)}
 
 
+def mapper_init_seconds(stats_json: Path) -> Optional[float]:
+    """The mapper's own time for its init stage (``init_seconds`` of the stats it writes at the end), or None."""
+    try:
+        v = json.loads(stats_json.read_text()).get("mapper", {}).get("init_seconds")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return round(float(v), 2) if isinstance(v, (int, float)) and v > 0 else None
+
+
 def summarize(fps: float, rows: list[dict], mon: Monitor, out: Path, scene: Path, t0: float, rc: int,
               wall: float) -> dict:
     from fmapping.metrics import ate, eval_traj_files
@@ -507,6 +516,9 @@ def summarize(fps: float, rows: list[dict], mon: Monitor, out: Path, scene: Path
     init_t = next((r["t"] for r in rows if r.get("windows", 0) >= 1), None)
     s["cpu_cores_during_playback"] = cpu_shares(rows, play_start, play_end)
     s["cpu_cores_until_init_done"] = cpu_shares(rows, play_start, init_t)
+    s["mapper"]["init_done_after_playback_start_s"] = (round(init_t - play_start, 1)
+                                                       if init_t is not None and play_start is not None else None)
+    s["mapper"]["init_s"] = mapper_init_seconds(out / "stats.json")
     if s["playback_seconds"]:
         s["keyframes_per_s"] = round(len(mon.keyframes) / s["playback_seconds"], 2)
     # tracker ATE over its usable poses (seq = frame index: no looping)
@@ -779,7 +791,9 @@ def main(argv=None) -> int:
               f"{s['rss_mb_peak']} | map {({k: s['map'].get(k) for k in ('accuracy_cm', 'completion_ratio')})}"
               f" | keyframes flagged {s['tracker']['keyframes_flagged']}, dropped {s['mapper']['keyframes_dropped']}, "
               f"non-keyframes thinned {s['mapper']['thinned_non_keyframes']}, tracker skipped to keep pace "
-              f"{s['tracker']['skipped_to_keep_pace']} | map after Sim3 {s.get('map_sim3_aligned')}", flush=True)
+              f"{s['tracker']['skipped_to_keep_pace']} | mapper init {s['mapper'].get('init_s')} s, done "
+              f"{s['mapper'].get('init_done_after_playback_start_s')} s after the first frame | map after Sim3 "
+              f"{s.get('map_sim3_aligned')}", flush=True)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(dumps(results) + "\n")  # partial results survive an interruption
         if run["rc"] == 130:

@@ -32,7 +32,11 @@ class MapperConfig:
     # (field.init_opacity): 4.0-5.8 s on 2 cores against 21-29 s for the 4 x 75 x 1024 rays at lr 0.02 from a clear
     # start before 2026-12-04, with a lower depth error after it on 3 of 4 synthetic rooms (bench/init_speed.py). The
     # final maps (GT poses) are about 1 point of completion ratio lower; the old init: 75, 1024, 0.02 and
-    # field.init_opacity 0 (bench/results/init_fog/)
+    # field.init_opacity 0 (bench/results/init_fog/). 192 rays per iteration (bench/results/init_rays_2026-12-07/): the
+    # init's CPU 5.2-6.4 -> 2.8-3.7 s on 1 thread, its depth error within the spread of the mapper's seeds, final maps
+    # with GT poses as good (7-Scenes dev 3 seeds 51.5 -> 53.5 %); in `fmapping up` at 30 fps the init then ends
+    # before a 200-frame stream does, the mapper thins non-keyframes to catch up, and that costs the final map
+    # (93.9-95.2 -> 80.4-93.5 % after the Sim3). Not the default until thinning stops costing the map
     init_iters_per_round: int = 20
     init_rays_per_iter: int = 512
     init_lr_grid: float = 0.05
