@@ -2,7 +2,7 @@
 
     python bench/init_speed.py                     # synthetic room seed 0, 320x240, 2 repetitions
     python bench/init_speed.py --reps 3 --seed 2 --variety wide
-    python bench/init_speed.py --data ../shared/data/7scenes_redkitchen_dev --mapper-seeds 0 1 2 --variants 1,2
+    python bench/init_speed.py --data ../shared/data/7scenes_redkitchen_dev --mapper-seeds 0 1 2 --variants 1,6
 
 Issue 18 asks for an init of at most 5 s on 2 CPU cores at the quality of the init before (4 rounds x 75
 iterations x 1024 rays from a clear field, :data:`BEFORE`). Each variant is a set of
