@@ -38,12 +38,12 @@ BEFORE = {"init_iters_per_round": 75, "init_rays_per_iter": 1024, "init_lr_grid"
           "field": {"init_opacity": 0.0}}
 VARIANTS = {
     "before: 4 x 75 x 1024 rays, lr 0.02, clear": BEFORE,
-    "default: 4 x 20 x 512 rays, lr 0.05 -> 0.02, fog 0.95": {},
+    "default: 4 x 20 x 192 rays, lr 0.05 -> 0.02, fog 0.95": {},
     "default, clear start": {"field": {"init_opacity": 0.0}},
     "default, fog 0.5": {"field": {"init_opacity": 0.5}},
     "default, constant lr 0.02": {"init_lr_grid": 0.02},
     "before with the fog (4 x 75 x 1024, lr 0.02)": {**BEFORE, "field": {"init_opacity": 0.95}},
-    "default, 192 rays": {"init_rays_per_iter": 192},
+    "default, 512 rays (the default before 2026-12-07)": {"init_rays_per_iter": 512},
     "default, 256 rays": {"init_rays_per_iter": 256},
 }
 INIT_VIEWS, HELD_OUT = list(range(0, 15, 3)), [17, 22, 27]

@@ -560,7 +560,9 @@ def test_the_final_map_is_exported_from_the_keyframes_and_the_newest_frames(data
                                       ({"consistency_blur": float("nan")}, "consistency_blur"),
                                       ({"pc_keep": 0.0}, "pc_keep"),
                                       ({"consistency_max_angle": -5.0}, "consistency_max_angle"),
-                                      ({"consistency_max_angle": float("nan")}, "consistency_max_angle")])
+                                      ({"consistency_max_angle": float("nan")}, "consistency_max_angle"),
+                                      ({"owed_iters_factor": -1.0}, "owed_iters_factor"),
+                                      ({"owed_iters_factor": float("nan")}, "owed_iters_factor")])
 def test_bad_exposure_start_or_blur_is_named(kw, match):
     with pytest.raises(ValueError, match=match):
         MapperConfig(**kw).validate()

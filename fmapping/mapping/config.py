@@ -28,17 +28,17 @@ class MapperConfig:
     # --- init stage
     init_frames: int = 15
     init_rounds: tuple = ((0, 32), (3, 64), (4, 64), (5, 64))  # (sliding window size (0 = stratified), samples per ray)
-    # 4 x 20 iterations of 512 rays, the grid's lr going geometrically from init_lr_grid to lr_grid, from a foggy start
-    # (field.init_opacity): 4.0-5.8 s on 2 cores against 21-29 s for the 4 x 75 x 1024 rays at lr 0.02 from a clear
-    # start before 2026-12-04, with a lower depth error after it on 3 of 4 synthetic rooms (bench/init_speed.py). The
-    # final maps (GT poses) are about 1 point of completion ratio lower; the old init: 75, 1024, 0.02 and
-    # field.init_opacity 0 (bench/results/init_fog/). 192 rays per iteration (bench/results/init_rays_2026-12-07/): the
-    # init's CPU 5.2-6.4 -> 2.8-3.7 s on 1 thread, its depth error within the spread of the mapper's seeds, final maps
-    # with GT poses as good (7-Scenes dev 3 seeds 51.5 -> 53.5 %); in `fmapping up` at 30 fps the init then ends
-    # before a 200-frame stream does, the mapper thins non-keyframes to catch up, and that costs the final map
-    # (93.9-95.2 -> 80.4-93.5 % after the Sim3). Not the default until thinning stops costing the map
+    # 4 x 20 iterations, the grid's lr going geometrically from init_lr_grid to lr_grid, from a foggy start
+    # (field.init_opacity): with 512 rays 4.0-5.8 s on 2 cores against 21-29 s for the 4 x 75 x 1024 rays at lr 0.02
+    # from a clear start before 2026-12-04, with a lower depth error after it on 3 of 4 synthetic rooms
+    # (bench/init_speed.py). The final maps (GT poses) are about 1 point of completion ratio lower; the old init: 75,
+    # 1024, 0.02 and field.init_opacity 0 (bench/results/init_fog/). 192 rays per iteration instead of 512
+    # (bench/results/init_rays_2026-12-07/): the init's CPU 5.2-6.4 -> 2.8-3.7 s on 1 thread, its depth error within
+    # the spread of the mapper's seeds, final maps with GT poses as good (7-Scenes dev 3 seeds 51.5 -> 53.5 %). In
+    # `fmapping up` at 30 fps the init then ends before a 200-frame stream does and the mapper thins non-keyframes
+    # to catch up; with owed_iters_factor 2 that no longer costs the final map (bench/results/closing_owed_2026-12-07/)
     init_iters_per_round: int = 20
-    init_rays_per_iter: int = 512
+    init_rays_per_iter: int = 192
     init_lr_grid: float = 0.05
     optimize_init_poses: bool = True  # frame 0 fixed; se(3) corrections for the others
     freeze_decoder_after_init: bool = True
@@ -146,10 +146,18 @@ class MapperConfig:
     keyframe_jpeg_quality: int = 95
     # --- closing refinement
     final_global_iters: int = 300
+    # a caller that fell behind the stream (services.mapper) owes the window iterations it skipped; the closing
+    # runs this many global iterations per owed one. A global iteration spreads its rays over every keyframe,
+    # a window iteration over the 20 frames around the new ones: offline, GT poses, 200 frames of a synthetic
+    # room with 42 non-keyframes thinned, 1x the owed iterations 93.1 %, 2x 96.0 %, 3x 96.4 %, every frame
+    # kept and 0 owed 95.5 % (bench/results/init_rays_2026-12-07, thin.log)
+    owed_iters_factor: float = 2.0
     seed: int = 0
     device: str = "auto"
 
     def validate(self) -> None:
+        if not 0 <= self.owed_iters_factor <= 100:
+            raise ValueError(f"MapperConfig.owed_iters_factor must be in 0..100, got {self.owed_iters_factor}")
         if self.init_frames < 1:
             raise ValueError(f"MapperConfig.init_frames must be >= 1, got {self.init_frames}")
         if self.window_size < 2 or not 0 <= self.n_global_keyframes < self.window_size:

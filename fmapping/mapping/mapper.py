@@ -140,8 +140,8 @@ class Mapper(WindowSchedule, OptimisationStep, MapperStateIO):
 
     def finish(self, extra_iters: int = 0) -> Optional[WindowStats]:
         """Flush pending frames (init or a last window), then the closing global refinement
-        (``final_global_iters`` plus ``extra_iters``: e.g. the window iterations a caller that fell
-        behind the stream skipped, see ``services.mapper.core``)."""
+        (``final_global_iters`` plus ``extra_iters``: e.g. ``owed_iters_factor`` times the window
+        iterations a caller that fell behind the stream skipped, see ``services.mapper.core``)."""
         last = None
         if not self.initialized and self._init_ids:
             last = self._run_init()

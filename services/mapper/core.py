@@ -87,8 +87,8 @@ class MapperServiceOptions:
     # paused: no camera to keep up with), every posed frame it holds is integrated (deferred windows)
     stream_idle_s: float = 2.0
     # the closing refinement also runs the window iterations a paced run would have spent on the frames since the
-    # init and this run did not (frames thinned or skipped, windows over more frames), so that the final map matches
-    # a paced run's; at most this many extra iterations
+    # init and this run did not (frames thinned or skipped, windows over more frames), times the mapper config's
+    # owed_iters_factor, so that the final map matches a paced run's; at most this many extra iterations
     max_owed_iters: int = 2000
     publish_mapper_poses: bool = True
     write_mesh: bool = True
@@ -471,7 +471,8 @@ class MapperCore(ServiceCore):
             self.frames.clear()
         if self.mapper is not None:
             pending = self.cfg.iters_per_window if self.mapper.window_due() else 0  # finish runs that window
-            extra = int(min(self.opts.max_owed_iters, max(0.0, round(self.owed_iters() - pending))))
+            owed = max(0.0, self.owed_iters() - pending)
+            extra = int(min(self.opts.max_owed_iters, round(owed * self.cfg.owed_iters_factor)))
             self.counters.set("closing_extra_iters", extra)
             stats = self.mapper.finish(extra_iters=extra)
             if stats is not None:
