@@ -45,6 +45,7 @@ VARIANTS = {
     "before with the fog (4 x 75 x 1024, lr 0.02)": {**BEFORE, "field": {"init_opacity": 0.95}},
     "default, 512 rays (the default before 2026-12-07)": {"init_rays_per_iter": 512},
     "default, 256 rays": {"init_rays_per_iter": 256},
+    "default, 16 iterations per round": {"init_iters_per_round": 16},
 }
 INIT_VIEWS, HELD_OUT = list(range(0, 15, 3)), [17, 22, 27]
 
