@@ -4,6 +4,7 @@ side by side for front-end variants.
     python bench/tracker_realtime.py                                     # the defaults, 3 rounds
     python bench/tracker_realtime.py --variants "wait:loop_ba_defer_frames=0" --rounds 5
     python bench/tracker_realtime.py --variants "direct:frame_pose='direct'"   # every frame aligned first
+    python bench/tracker_realtime.py --variants "loop_sync:loop_thread=False"   # the loop search on the frame path
 
 What ``fmapping up`` does around the tracker, without the other services: a player thread puts frame k and its GT
 anchor pose into the tracker's bounded inbox (:class:`services.core_support.Inbox`) at k / ``--fps`` seconds
@@ -77,7 +78,8 @@ def run_once(frames: list, gts: list, gt_c2w: list, mono, trk, fps: float, tail_
 
     counters = Counters()
     inbox = Inbox({"end": 8, "poses": 8192, "frames": 64}, counters, thin=("frames",))  # the service's bounds
-    core = TrackerCore(trk, TrackerServiceOptions(ba_thread=True), counters=counters, mono_cfg=mono)
+    core = TrackerCore(trk, TrackerServiceOptions(ba_thread=True, loop_thread=mono.loop_thread), counters=counters,
+                       mono_cfg=mono)
     core.backlog = lambda: inbox.size("frames")
     core.stream_idle = lambda: inbox.idle("frames")
     t_in: dict = {}
@@ -180,7 +182,8 @@ def main(argv=None) -> int:
     variants = [("base", "")] + [tuple(v.split(":", 1)) if ":" in v else (v, "") for v in a.variants]
     # (MonoConfig, TrackerConfig); the service's own camera-rate choice first (services.tracker --frame-pose), then
     # the variant's settings
-    configs = {name: make_configs(f"frame_pose={SERVICE_FRAME_POSE!r};{spec}".rstrip(";")) for name, spec in variants}
+    service = f"frame_pose={SERVICE_FRAME_POSE!r};ba_thread=True;loop_thread=True"
+    configs = {name: make_configs(f"{service};{spec}".rstrip(";")) for name, spec in variants}
     stop = mp.Event()
     load = [mp.Process(target=spin, args=(stop, a.load_nice), daemon=True) for _ in range(a.load)]
     for p in load:

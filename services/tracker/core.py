@@ -107,10 +107,11 @@ class TrackerServiceOptions:
     # mono: a frame skipped to keep pace gets the pose between its tracked neighbours', published just before the
     # next one (SessionConfig.interpolate_skipped; off: answered at once with quality 0, no pose)
     interpolate_skipped: bool = True
-    # mono: the keyframe bundle adjustment in a worker thread, merged between frames (MonoConfig.ba_thread): a
-    # keyframe no longer holds up its frame's pose. Off here (the poses then equal fmapping slam's exactly);
-    # the service's CLI turns it on unless playback is paced.
+    # mono: the keyframe bundle adjustment and the loop search in worker threads, merged between frames
+    # (MonoConfig.ba_thread, loop_thread): a keyframe no longer holds up its frame's pose. Off here (the poses then
+    # equal fmapping slam's exactly); the service's CLI turns it on unless playback is paced.
     ba_thread: bool = False
+    loop_thread: Optional[bool] = None  # the loop search's worker alone (None: with ba_thread)
     # mono: where a frame's pose comes from first (MonoConfig.frame_pose): "pnp" fits it to the KLT-tracked landmarks
     # and aligns photometrically only the frames that fail, 20-30 % less time a frame; None: the mono config's own
     # ("direct", as fmapping slam). The service's CLI picks "pnp" unless playback is paced.
@@ -121,6 +122,8 @@ class TrackerServiceOptions:
             raise ValueError(f"tracker frontend must be 'mono' or 'map', got {self.frontend!r}")
         if self.frame_pose not in (None, "direct", "pnp"):
             raise ValueError(f"tracker frame_pose must be 'direct' or 'pnp', got {self.frame_pose!r}")
+        if self.loop_thread and not self.ba_thread:
+            raise ValueError("tracker loop_thread needs ba_thread (the loop's bundle adjustment goes to its worker)")
         if self.skip_behind < 0 or not self.stream_idle_s >= 0:
             raise ValueError(f"skip_behind and stream_idle_s must be >= 0, got {self.skip_behind} and "
                              f"{self.stream_idle_s}")
@@ -302,7 +305,8 @@ class TrackerCore(MapFrontend, ServiceCore):
 
         from fmapping.tracking.mono import MonoConfig
 
-        mono = dataclasses.replace(self.mono_cfg or MonoConfig(), ba_thread=o.ba_thread)
+        mono = dataclasses.replace(self.mono_cfg or MonoConfig(), ba_thread=o.ba_thread,
+                                   loop_thread=o.ba_thread if o.loop_thread is None else o.loop_thread)
         if o.frame_pose is not None:
             mono = dataclasses.replace(mono, frame_pose=o.frame_pose)
         self.session = PoseSession(self.camera, self.cfg, mono, policy, anchors=self.anchors)

@@ -39,6 +39,8 @@ RGB-only tracking before (and independently of) the neural map:
    bundle adjustment of those keyframes with the loop's matches as observations (the pose
    graph bends the chain; the BA makes it agree with the images again), scaled back to the
    pose graph's size; :meth:`MonoFrontend.refined_poses` then hands on every frame's pose.
+   With ``MonoConfig.loop_thread`` the search (verification and pose graph) runs in a worker
+   thread and its correction is merged at a later frame.
 
 With ``MonoConfig.rolling_shutter`` (the readout time as a fraction of the frame interval) the
 tracked pixels are unrolled (:mod:`fmapping.tracking.rolling_shutter`) with each frame's rotation
@@ -51,7 +53,8 @@ returns them moved with the bundle-adjusted keyframes. Poses are camera-to-world
 
 The package: :mod:`~fmapping.tracking.mono.config` (:class:`MonoConfig`),
 :mod:`~fmapping.tracking.mono.store` (tracks, keyframes, landmarks, the windowed BA),
-:mod:`~fmapping.tracking.mono.ba_thread` (that BA off the frame path),
+:mod:`~fmapping.tracking.mono.ba_thread` (that BA off the frame path; both workers are
+:mod:`~fmapping.tracking.mono.worker`'s),
 :mod:`~fmapping.tracking.mono.bootstrap` (1.), :mod:`~fmapping.tracking.mono.frontend`
 (:class:`MonoFrontend`: 2., 3., the late anchor), :mod:`~fmapping.tracking.mono.loop_closing` (4.) and
 :mod:`~fmapping.tracking.mono.restart` (going on from saved keyframes).

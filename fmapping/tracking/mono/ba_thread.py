@@ -14,63 +14,28 @@ the run. The small window problems keep their memory for the next one.
 """
 from __future__ import annotations
 
-import threading
-from typing import Optional
-
 from fmapping.camera import PinholeCamera
 from fmapping.runtime import release_free_memory
-from fmapping.tracking.ba import BAResult
 from fmapping.tracking.mono.store import BAProblem, solve_ba_problem
+from fmapping.tracking.mono.worker import BackgroundJob
 
 
-class BackgroundBA:
-    """One bundle adjustment at a time in a worker thread: :meth:`submit`, then :meth:`take` it."""
+class BackgroundBA(BackgroundJob):
+    """One bundle adjustment at a time in a worker thread: :meth:`submit`, then :meth:`take` (problem, result)."""
 
     def __init__(self, camera: PinholeCamera):
+        super().__init__("fmapping-ba")
         self.camera = camera
-        self._job: Optional[tuple] = None  # (problem, thread, box): box holds "result" or "error"
-        self.submitted = 0
-        self.waited = 0  # takes that had to wait for the worker (the frame path paid for them)
-
-    @property
-    def busy(self) -> bool:
-        """Is a problem in flight (solved or not, not yet taken)?"""
-        return self._job is not None
-
-    def ready(self) -> bool:
-        return self._job is not None and not self._job[1].is_alive()
 
     def submit(self, prob: BAProblem, release_memory: bool = False) -> None:
-        if self._job is not None:
+        if self.busy:
             raise RuntimeError("BackgroundBA.submit while a bundle adjustment is in flight: take it first")
-        box: dict = {}
 
-        def work() -> None:
+        def work():
             try:
-                box["result"] = solve_ba_problem(self.camera, prob)
-            except Exception as e:  # noqa: BLE001 - handed to the taker, raised there
-                box["error"] = e
-            if release_memory:
-                release_free_memory()
+                return solve_ba_problem(self.camera, prob)
+            finally:
+                if release_memory:
+                    release_free_memory()
 
-        t = threading.Thread(target=work, name="fmapping-ba", daemon=True)
-        self._job = (prob, t, box)
-        self.submitted += 1
-        t.start()
-
-    def take(self, wait: bool) -> Optional[tuple[BAProblem, BAResult]]:
-        """The finished (problem, result), or None when nothing is in flight or (``wait`` False) it is
-        still being solved. With ``wait`` it blocks until the worker is done. A failed solve raises
-        here, in the taker's thread."""
-        if self._job is None:
-            return None
-        prob, t, box = self._job
-        if t.is_alive():
-            if not wait:
-                return None
-            self.waited += 1
-            t.join()
-        self._job = None
-        if "error" in box:
-            raise box["error"]
-        return prob, box["result"]
+        self.start(prob, work)

@@ -90,6 +90,11 @@ class MonoConfig:
     # a keyframe then costs its frame ~5 ms instead of ~150 ms. The merge point depends on timing, so results
     # vary from run to run; off for the offline runs, on in the tracker service at a camera's rate.
     ba_thread: bool = False
+    # ... and the loop search at a keyframe (verification, cross-check, pose graph: 20-60 ms at 320x240) in another
+    # worker (fmapping.tracking.mono.loop_closing): its correction is merged at a later frame, when the BA worker
+    # is idle; while the loop's BA is in that worker (0.6-0.7 s at 320x240), keyframes are added without waiting
+    # for it and move with its newest keyframe when it is merged. Needs ba_thread.
+    loop_thread: bool = False
     # ... and after a loop closure's BA the worker hands the C heap's free pages back (fmapping.runtime): the tracker
     # service retains freed memory for reuse, so the loop's ~26 MB of temporaries stayed resident. Not after the
     # window BAs: trimming after each of them looked slower (bench/tracker_realtime.py, 8 alternated runs: pose latency
@@ -172,6 +177,8 @@ class MonoConfig:
         if not self.kf_obs_max_px >= 0 or not 0.0 <= self.kf_obs_max_share <= 1.0:
             raise ValueError(f"mono.kf_obs_max_px must be >= 0 and mono.kf_obs_max_share in [0, 1], got "
                              f"{self.kf_obs_max_px}, {self.kf_obs_max_share}")
+        if self.loop_thread and not self.ba_thread:
+            raise ValueError("mono.loop_thread needs mono.ba_thread (the loop's bundle adjustment goes to its worker)")
         if self.loop_ba_defer_frames < 0 or not 0.0 <= self.ba_defer_min_visible <= 1.0:
             raise ValueError(f"mono.loop_ba_defer_frames must be >= 0 and mono.ba_defer_min_visible in [0, 1], got "
                              f"{self.loop_ba_defer_frames} and {self.ba_defer_min_visible}")

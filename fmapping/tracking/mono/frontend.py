@@ -22,6 +22,7 @@ from fmapping.tracking.mono.loop_closing import LoopClosing
 from fmapping.tracking.mono.restart import Restart
 from fmapping.tracking.ba import BAResult
 from fmapping.tracking.mono.store import BAProblem, KeyframeStore, Tracks, solve_ba_problem
+from fmapping.tracking.mono.worker import BackgroundJob
 from fmapping.tracking.rolling_shutter import rotation_step, unroll
 
 
@@ -80,7 +81,12 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         self._step = np.zeros(3)  # the current frame's rotation since the previous one (camera frame)
         # the keyframe BA in a worker thread (MonoConfig.ba_thread), merged between frames
         self._bg: Optional[BackgroundBA] = BackgroundBA(camera) if self.cfg.ba_thread else None
-        self.ba_merges = 0  # bundle adjustments merged so far (the worker's, the final one): their poses moved
+        # the loop search in another worker (MonoConfig.loop_thread), merged at a later frame
+        self._loop_worker: Optional[BackgroundJob] = BackgroundJob("fmapping-loop") if self.cfg.loop_thread else None
+        self._loop_epoch = 0  # a rescale or re-initialisation since a search began voids it
+        # bundle adjustments (the worker's, the final one) and loop corrections (loop_thread) merged so far: their
+        # poses moved
+        self.ba_merges = 0
         self.final_ba_stats: Optional[dict] = None  # the final bundle adjustment's (:meth:`final_ba`)
         self._ref_src: Optional[tuple] = None  # (keyframe, landmark ids, pixels, extra points): its reference
 
@@ -98,6 +104,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         if self._anchor is not None and index - self._first_index >= 2 * self.cfg.late_anchor_frames:
             self.settle_scale(f"no tracked frame with an anchor pose in the first {2 * self.cfg.late_anchor_frames}")
         self._merge_ba(wait=False)  # a bundle adjustment finished since the last frame: take it first
+        self._merge_loop()  # ... and a loop search (loop_thread), once the BA worker is idle
         self.tracker.at_frame(index)  # the motion model predicts over the frames skipped since the last one
         gray = to_u8(rgb)
         quick = None
@@ -191,6 +198,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         poses, the landmarks first seen by them, the frames stored relative to them (translations)
         and the tracker's references of them (with everything, its motion model too)."""
         self._merge_ba(wait=True)  # a solution in flight is in the old scale
+        self._loop_epoch += 1  # ... and a loop search in flight is dropped
         self.store.scale_part(c0, s, kfs)
         self.tracker.rescale(c0, s, frames=kfs)
 
@@ -248,6 +256,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         med = self.tracker.reference.median_depth if self.tracker.reference is not None else self.cfg.unit_depth
         cam = self.camera
         depth = np.full((cam.height, cam.width), med if np.isfinite(med) else self.cfg.unit_depth, np.float32)
+        self._loop_epoch += 1  # a new world frame: a loop search in flight is dropped
         self.store.kf_pose[index] = np.asarray(c2w, np.float64).copy()
         self.store.kf_rgb[index] = rgb
         self.store.window = [index]
@@ -377,7 +386,9 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         loops are looked for, and this keyframe's BA goes to the worker (merged by :meth:`_merge_ba`)."""
         c = self.cfg
         self._moved_all = False  # (a loop's bundle adjustment merged just below sets it again)
-        c2w = self._merge_moving(c2w)  # one bundle adjustment in flight at a time; the store changes now
+        # one bundle adjustment in flight at a time; the store changes now. With loop_thread a loop's (tens of
+        # keyframes, most of a second) is not waited for: keyframes go on meanwhile and move with it when it is merged
+        c2w = self._merge_moving(c2w, wait=self._loop_ba is None or not c.loop_thread)
         self.store.add_keyframe(index, rgb, c2w, gray)
         before = self.store.kf_pose[index].copy()
         if c.ba and self._bg is None:
@@ -408,20 +419,31 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
     def _take_ba(self, prob: BAProblem, res: BAResult) -> None:
         """The solution ``res`` of ``prob`` into the store (its poses and landmarks), the tracker's references
         moved with their keyframes and the motion model with the current one; a loop closure's back to the
-        graph's scale."""
+        graph's scale. Keyframes added while a loop's was in flight move as its newest keyframe did, with the
+        landmarks they first saw."""
+        loop = self._loop_ba is not None and self._loop_ba.prob is prob
         before = {k: self.store.kf_pose[k].copy() for k in prob.window if k in self.store.kf_pose}
+        last = prob.window[-1]
+        newer = {k: p.copy() for k, p in self.store.kf_pose.items() if k > last} if loop and last in before else {}
         dropped = self.store.apply_ba(prob, res)
+        if newer:
+            tail = self.store.kf_pose[last] @ inv_pose(before[last])
+            for k, b in newer.items():
+                self.store.kf_pose[k] = orthonormalize(tail @ b)
+            self.store.move_landmarks({k: tail for k in newer})
+            before.update(newer)
         moves = {k: self.store.kf_pose[k] @ inv_pose(b) for k, b in before.items()}
         self.tracker.move_references(moves)
         if self._kf_index in moves:
             self.tracker.move_motion(moves[self._kf_index])
             self._rebuild_reference(dropped)
         self.ba_merges += 1
-        if self._loop_ba is not None and self._loop_ba.prob is prob:  # a loop closure's: back to the graph's scale
+        if loop:  # a loop closure's: back to the graph's scale
             loop, self._loop_ba = self._loop_ba, None
             k = self._kf_index
             was = self.store.kf_pose[k].copy() if k in self.store.kf_pose else None
-            self._after_loop_ba(loop.keyframes, loop.old, loop.graph_size, loop.record)
+            loop.record["keyframes_meanwhile"] = len(newer)
+            self._after_loop_ba(loop.keyframes, loop.old, loop.graph_size, loop.record, tuple(sorted(newer)))
             if was is not None:  # the motion model moves with the current keyframe (as at a keyframe)
                 self.tracker.move_motion(self.store.kf_pose[k] @ inv_pose(was))
             self._moved_all = True
@@ -444,19 +466,27 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
             except ValueError:
                 pass  # keep the moved one
 
-    def _merge_moving(self, c2w: np.ndarray) -> np.ndarray:
-        """Wait for and merge a bundle adjustment in flight; ``c2w``, a pose tracked against the current
-        keyframe before the merge, moved with that keyframe."""
+    def _merge_moving(self, c2w: np.ndarray, wait: bool = True) -> np.ndarray:
+        """Wait for (``wait``; else take it if done) and merge a bundle adjustment in flight, then a finished
+        loop search (``loop_thread``; one still running stays in flight); ``c2w``, a pose tracked against the
+        current keyframe before the merge, moved with that keyframe."""
         k = self._kf_index
         before = self.store.kf_pose[k].copy() if k in self.store.kf_pose else None
-        if not self._merge_ba(wait=True) or before is None:
+        merged = self._merge_ba(wait=wait)
+        merged = self._merge_loop() or merged
+        if not merged or before is None:
             return c2w
         return orthonormalize(self.store.kf_pose[k] @ inv_pose(before) @ c2w)
 
     def flush_ba(self) -> bool:
-        """Wait for a bundle adjustment in flight and merge it (the end of a sequence, a snapshot of
-        the final poses). True when one was merged."""
-        return self._merge_ba(wait=True)
+        """Wait for a bundle adjustment in flight and merge it, then a loop search in flight (``loop_thread``)
+        and the bundle adjustment its correction starts (the end of a sequence, a snapshot of the final poses).
+        True when poses moved."""
+        merged = self._merge_ba(wait=True)
+        if self._loop_worker is not None and self._loop_worker.busy:
+            merged = self._merge_loop(wait=True) or merged
+            merged = self._merge_ba(wait=True) or merged
+        return merged
 
     def final_ba(self) -> bool:
         """The sequence ended: the bundle adjustment in flight merged (:meth:`flush_ba`), then one bundle
@@ -548,8 +578,8 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
     def poses(self, window_only: bool = False) -> dict:
         """Every tracked frame's pose, moved with its bundle-adjusted keyframe. With ``window_only``
         just the frames of the keyframes in the current BA window: the only ones the last BA moved.
-        A bundle adjustment still in the worker (``ba_thread``) is not in them until it is merged: at
-        the next frame when it is done by then, or :meth:`flush_ba`."""
+        A bundle adjustment still in the worker (``ba_thread``), or a loop search (``loop_thread``), is not in
+        them until it is merged: at the next frame when it is done by then, or :meth:`flush_ba`."""
         keep = set(self.store.window) if window_only else self.store.kf_pose
         return {i: orthonormalize(self.store.kf_pose[k] @ rel) for i, (k, rel) in self.store.rel.items()
                 if k in keep and k in self.store.kf_pose}

@@ -416,10 +416,12 @@ class KeyframeStore:
             tr = self.tracks
             # merged frames after the keyframe (MonoConfig.ba_thread): restart at the keyframe's pixel, not the
             # current frame's, else the next triangulation pairs the keyframe's pose with another frame's pixel
-            restart = tr.restart_pixels(win[-1])
+            # (keyframes added while a loop's problem was solved: at the tracks' own keyframe, the newest)
+            at = max(win[-1], tr.kf)
+            restart = tr.restart_pixels(at)
             for j in np.flatnonzero(np.isin(tr.lid, list(bad_l))):
                 tr.lid[j] = -1  # re-triangulate later from this keyframe on
-                tr.first_kf[j] = win[-1]
+                tr.first_kf[j] = at
                 tr.uv_first[j] = restart[j]
         self.ba_stats.append({"keyframes": len(win), "fixed_observers": len(prob.extra), "points": int(len(prob.lids)),
                               "obs": int(len(obs)),
