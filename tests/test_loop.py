@@ -326,61 +326,72 @@ def test_the_loop_search_runs_in_its_worker_and_is_merged_frames_later_with_loop
     """With ``loop_thread`` (the tracker service) the loop search of a keyframe (verification, cross-check,
     pose graph: 20-60 ms at 320x240) runs in its own worker while the next frames are tracked; its correction
     is merged at a later frame (held here until the third frame that asks), the loop's bundle adjustment goes
-    to the BA worker, and every frame's pose moves then. The end of the sequence is as close to the GT as with
-    the search on the frame path (measured: 1.01 cm merged 3 frames after the loop's keyframe, 1.00 cm at it)."""
+    to the BA worker, and every frame's pose moves then. Held until the 13th, the search leaves the next
+    keyframes unsearched; the last of them is searched from when the stream ends. The end of the sequence is
+    as close to the GT as with the search on the frame path (measured: 1.00 cm at the loop's keyframe, 1.01 cm
+    merged 3 frames after it, 1.01 cm closed at the end)."""
     import threading
 
     from fmapping.datasets import open_dataset
     from fmapping.tracking.loop import LoopConfig
     from fmapping.tracking.mono import MonoConfig, MonoFrontend, ba_thread, loop_closing, worker
 
-    searched_in = []
+    searched_in, searched_from = [], []
     real_search = loop_closing.search_loop
 
-    def search(*a):
+    def search(camera, q, *a):
         searched_in.append(threading.current_thread().name)
-        return real_search(*a)
+        searched_from.append(q.index)
+        return real_search(camera, q, *a)
 
     monkeypatch.setattr(loop_closing, "search_loop", search)
     real_take = ba_thread.BackgroundBA.take
     monkeypatch.setattr(ba_thread.BackgroundBA, "take", lambda bg, wait: real_take(bg, True))
-    looked, now = {}, {"frame": -1}  # the loop worker's job -> the frames that asked whether it was done
+    looked, now = {}, {"frame": -1, "hold": 3}  # the loop worker's job -> the frames that asked whether it was done
     real_ready = worker.BackgroundJob.ready
 
     def ready(job):
         if job.name != "fmapping-loop" or job._job is None:
             return real_ready(job)
-        job._job[1].join()  # done, but handed over only from the 3rd frame that asks on: the run deterministic
+        job._job[1].join()  # done, but handed over only from the n-th frame that asks on: the run deterministic
         looked.setdefault(job.submitted, set()).add(now["frame"])
-        return len(looked[job.submitted]) >= 3
+        return len(looked[job.submitted]) >= now["hold"]
 
     monkeypatch.setattr(worker.BackgroundJob, "ready", ready)
     ds = open_dataset(loop160)
     g = ds.gt_poses
-    err, merged_at = {}, {}
-    for thread in (False, True):
-        searched_in.clear()
+    err, merged_at, passed_over, searched = {}, {}, {}, {}
+    for run, thread, hold in (("frame_path", False, 0), ("worker", True, 3), ("late", True, 13)):
+        searched_in.clear(), searched_from.clear(), looked.clear()
+        now["hold"] = hold
         fe = MonoFrontend(ds.camera, None, MonoConfig(loop=LoopConfig(), ba_thread=True, loop_thread=thread))
         i = 0
         while not fe.initialized:
             fe.bootstrap(i, ds[i].rgb, g[0], lambda k: float(np.linalg.norm(g[k][:3, 3] - g[0][:3, 3])))
             i += 1
-        merged_at[thread] = []
+        merged_at[run] = []
         for n in range(i, len(ds)):
             had, now["frame"] = len(fe.loops), n
             fe.track(n, ds[n].rgb)
             if len(fe.loops) > had:
-                merged_at[thread].append((fe.loops[-1]["frame"], n, set(fe.refined_poses()) == set(fe.poses())))
+                merged_at[run].append((fe.loops[-1]["frame"], n, set(fe.refined_poses()) == set(fe.poses())))
+        passed_over[run] = fe._loop_passed_over
         fe.flush_ba()
+        searched[run] = list(searched_from)
         p = fe.poses()
-        err[thread] = np.mean([np.linalg.norm(p[k][:3, 3] - g[k][:3, 3]) for k in range(190, 200)])
+        err[run] = np.mean([np.linalg.norm(p[k][:3, 3] - g[k][:3, 3]) for k in range(190, 200)])
         assert searched_in and set(searched_in) == {"fmapping-loop" if thread else "MainThread"}, searched_in
         assert fe.loops and fe.loops[0]["keyframe"] == 0 and all(rec.get("ba_in_worker") for rec in fe.loops)
     # on the frame path the correction lands at the loop's keyframe, from the worker at least 2 frames later;
     # either way every frame's pose is handed on then
-    assert all(kf == n and every for kf, n, every in merged_at[False]), merged_at
-    assert all(n >= kf + 2 and every for kf, n, every in merged_at[True]), merged_at
-    assert err[True] < 0.03 and err[True] < 1.25 * err[False] + 0.005, err
+    assert merged_at["frame_path"] and all(kf == n and every for kf, n, every in merged_at["frame_path"]), merged_at
+    assert merged_at["worker"] and all(n >= kf + 2 and every for kf, n, every in merged_at["worker"]), merged_at
+    # held long, the last keyframe was passed over; the end of the stream searched from it and closed the loop
+    last = passed_over["late"]
+    assert last is not None and searched["late"][-1] == last and last not in searched["late"][:-1], \
+        (passed_over, searched)
+    assert err["worker"] < 0.03 and err["worker"] < 1.25 * err["frame_path"] + 0.005, err
+    assert err["late"] < 0.03 and err["late"] < 1.25 * err["frame_path"] + 0.005, err
 
 
 @pytest.mark.slow

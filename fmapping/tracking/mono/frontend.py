@@ -84,6 +84,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         # the loop search in another worker (MonoConfig.loop_thread), merged at a later frame
         self._loop_worker: Optional[BackgroundJob] = BackgroundJob("fmapping-loop") if self.cfg.loop_thread else None
         self._loop_epoch = 0  # a rescale or re-initialisation since a search began voids it
+        self._loop_passed_over: Optional[int] = None  # the last keyframe not searched from (a search was busy)
         # bundle adjustments (the worker's, the final one) and loop corrections (loop_thread) merged so far: their
         # poses moved
         self.ba_merges = 0
@@ -480,12 +481,11 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
 
     def flush_ba(self) -> bool:
         """Wait for a bundle adjustment in flight and merge it, then a loop search in flight (``loop_thread``)
-        and the bundle adjustment its correction starts (the end of a sequence, a snapshot of the final poses).
-        True when poses moved."""
+        and one from the last keyframe if it was passed over, with the bundle adjustment each correction starts
+        (the end of a sequence, a snapshot of the final poses). True when poses moved."""
         merged = self._merge_ba(wait=True)
-        if self._loop_worker is not None and self._loop_worker.busy:
-            merged = self._merge_loop(wait=True) or merged
-            merged = self._merge_ba(wait=True) or merged
+        if self._loop_worker is not None:
+            merged = self._flush_loop() or merged
         return merged
 
     def final_ba(self) -> bool:

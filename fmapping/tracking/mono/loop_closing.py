@@ -117,7 +117,9 @@ class LoopClosing:
         while a loop's bundle adjustment is in flight (its merge rescales the loop: the search would be stale)."""
         w = self._loop_worker
         if (w is not None and w.busy) or self._loop_ba is not None:
+            self._loop_passed_over = index  # searched from at the end of the stream if no later one is
             return
+        self._loop_passed_over = None
         q = self._loop_query(index, gray)
         if q is None:
             return
@@ -149,6 +151,20 @@ class LoopClosing:
         first = min(c[0] for c in cands)
         poses = {k: p.copy() for k, p in self.store.kf_pose.items() if k >= first}
         return LoopQuery(index, gray, scale, poses, cands, own, self._loop_epoch)
+
+    def _flush_loop(self) -> bool:
+        """The end of the stream (``loop_thread``): the search in flight merged, then one from the last keyframe
+        if it was passed over (:meth:`_close_loop`), each followed by the bundle adjustment its correction
+        starts. True when poses moved."""
+        merged = False
+        for _ in range(2):
+            k = self._loop_passed_over
+            if not self._loop_worker.busy and k is not None and k in self._kf_images and self._loop_ba is None:
+                self._close_loop(k, self._kf_images[k])
+            if self._loop_worker.busy:
+                merged = self._merge_loop(wait=True) or merged
+                merged = self._merge_ba(wait=True) or merged
+        return merged
 
     def _merge_loop(self, wait: bool = False) -> bool:
         """Merge the loop worker's search when it is done (``wait``: block until it is) and the bundle
