@@ -5,6 +5,7 @@ side by side for front-end variants.
     python bench/tracker_realtime.py --variants "wait:loop_ba_defer_frames=0" --rounds 5
     python bench/tracker_realtime.py --variants "direct:frame_pose='direct'"   # every frame aligned first
     python bench/tracker_realtime.py --variants "loop_sync:loop_thread=False"   # the loop search on the frame path
+    python bench/tracker_realtime.py --variants "kf_first:service.keyframe_after_pose=False"   # keyframe work first
 
 What ``fmapping up`` does around the tracker, without the other services: a player thread puts frame k and its GT
 anchor pose into the tracker's bounded inbox (:class:`services.core_support.Inbox`) at k / ``--fps`` seconds
@@ -17,7 +18,8 @@ without the transport and the other services' CPU). "once tracking": frames that
 out (the bootstrap and the late anchor hold the first ~15 frames' poses by design).
 
 A variant is ``name:key=value;key=value`` as in ``bench/mono_variants.py``: ``MonoConfig`` fields (``klt.*`` /
-``loop.*`` of its parts), ``tracker.*`` of the ``TrackerConfig`` (values are Python literals). The variants
+``loop.*`` of its parts), ``tracker.*`` of the ``TrackerConfig``, ``service.*`` of the tracker service's
+``TrackerServiceOptions`` (values are Python literals). The variants
 run in turn within each round, so that the CPU's swings fall on all.
 Per run: latency median / p95 / max once tracking, per-message wall time of ``apply`` (median / p95 / max),
 frames tracked / answered untracked, keyframes deferred, the Sim3 ATE of the final poses (the bundle
@@ -26,12 +28,14 @@ adjustment's timing differs from run to run, so the poses do too) and the slowes
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import multiprocessing as mp
 import platform
 import sys
 import threading
 import time
+from typing import Optional
 from pathlib import Path
 
 import numpy as np
@@ -69,7 +73,8 @@ def encode_stream(ds) -> tuple[list[bytes], list[bytes]]:
 SERVICE_FRAME_POSE = "pnp"  # what the tracker service's CLI runs at a camera's rate (services.tracker --frame-pose)
 
 
-def run_once(frames: list, gts: list, gt_c2w: list, mono, trk, fps: float, tail_s: float = 3.0) -> dict:
+def run_once(frames: list, gts: list, gt_c2w: list, mono, trk, fps: float, tail_s: float = 3.0,
+             options: Optional[dict] = None) -> dict:
     """One playback at ``fps`` through a fresh tracker core (see the module docstring)."""
     from fmapping import protocol as P
     from fmapping.metrics import ate
@@ -78,8 +83,8 @@ def run_once(frames: list, gts: list, gt_c2w: list, mono, trk, fps: float, tail_
 
     counters = Counters()
     inbox = Inbox({"end": 8, "poses": 8192, "frames": 64}, counters, thin=("frames",))  # the service's bounds
-    core = TrackerCore(trk, TrackerServiceOptions(ba_thread=True, loop_thread=mono.loop_thread), counters=counters,
-                       mono_cfg=mono)
+    opts = TrackerServiceOptions(ba_thread=True, loop_thread=mono.loop_thread, **(options or {}))
+    core = TrackerCore(trk, opts, counters=counters, mono_cfg=mono)
     core.backlog = lambda: inbox.size("frames")
     core.stream_idle = lambda: inbox.idle("frames")
     t_in: dict = {}
@@ -106,16 +111,18 @@ def run_once(frames: list, gts: list, gt_c2w: list, mono, trk, fps: float, tail_
         channel, (_, msg) = item
         t0 = time.perf_counter()
         out = core.apply(msg)
-        ms = (time.perf_counter() - t0) * 1e3
         now = time.monotonic()
+        for stage in (out, core.finish_frame()):  # as the shell: a keyframe's work after its pose went out
+            for _, p in stage:
+                good = p.quality is None or p.quality > 0
+                if good:
+                    final[p.seq] = np.array(p.c2w)
+                if p.seq not in t_out:
+                    t_out[p.seq], usable[p.seq] = now, good
+            now = time.monotonic()
+        ms = (time.perf_counter() - t0) * 1e3
         if channel == "frames":
             applies.append((msg.seq, ms))
-        for _, p in out:
-            good = p.quality is None or p.quality > 0
-            if good:
-                final[p.seq] = np.array(p.c2w)
-            if p.seq not in t_out:
-                t_out[p.seq], usable[p.seq] = now, good
         if channel == "end":
             break
     th.join()
@@ -183,7 +190,11 @@ def main(argv=None) -> int:
     # (MonoConfig, TrackerConfig); the service's own camera-rate choice first (services.tracker --frame-pose), then
     # the variant's settings
     service = f"frame_pose={SERVICE_FRAME_POSE!r};ba_thread=True;loop_thread=True"
-    configs = {name: make_configs(f"{service};{spec}".rstrip(";")) for name, spec in variants}
+    configs = {name: make_configs(f"{service};" + ";".join(x for x in spec.split(";") if not x.startswith("service.")))
+               for name, spec in variants}
+    # TrackerServiceOptions fields as "service.<field>=<literal>"
+    options = {name: {x.split("=", 1)[0][8:]: ast.literal_eval(x.split("=", 1)[1]) for x in spec.split(";")
+                      if x.startswith("service.")} for name, spec in variants}
     stop = mp.Event()
     load = [mp.Process(target=spin, args=(stop, a.load_nice), daemon=True) for _ in range(a.load)]
     for p in load:
@@ -193,7 +204,7 @@ def main(argv=None) -> int:
         time.sleep(1.0)
         for r in range(a.rounds):
             for name, _ in variants:
-                res = run_once(frames, gts, gt_c2w, *configs[name], a.fps)
+                res = run_once(frames, gts, gt_c2w, *configs[name], a.fps, options=options[name])
                 runs[name].append(res)
                 lat, ms = res["latency_s_once_tracking"], res["apply_ms"]
                 print(f"round {r + 1} {name:12s} latency median / p95 / max {lat['median']:.3f} / {lat['p95']:.3f} / "

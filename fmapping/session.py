@@ -135,13 +135,17 @@ class PoseSession:
         return float(np.linalg.norm(a[:3, 3] - self._first_anchored[:3, 3]))
 
     # ------------------------------------------------------------ frames
-    def push(self, index: int, rgb: np.ndarray, timestamp: float = 0.0, extra_depth=None) -> list[PoseUpdate]:
-        """Frame ``index``: the pose updates it releases (possibly none while bootstrapping or holding)."""
+    def push(self, index: int, rgb: np.ndarray, timestamp: float = 0.0, extra_depth=None,
+             keyframe_later: bool = False) -> list[PoseUpdate]:
+        """Frame ``index``: the pose updates it releases (possibly none while bootstrapping or holding). With
+        ``keyframe_later`` a new keyframe's pose leaves before its keyframe work, which waits for
+        :meth:`finish_keyframe` (or the next frame): what a caller at a camera's rate wants."""
         if not self.frontend.initialized:
             return self._bootstrap(index, rgb, timestamp)
-        r = self.frontend.track(index, rgb, extra_depth=extra_depth)
+        out = self.finish_keyframe()
+        r = self.frontend.track(index, rgb, extra_depth=extra_depth, keyframe_later=keyframe_later)
         self.last = r
-        out = self.release()  # the late anchor may have fixed the scale with this frame
+        out += self.release()  # the late anchor may have fixed the scale with this frame
         out += self._after_skipped(index, timestamp, r)
         self._tracked = None if r.lost else (index, timestamp)
         if r.lost:
@@ -150,9 +154,16 @@ class PoseSession:
             out += self._give(PoseUpdate(index, timestamp, np.array(r.c2w), float(max(r.inlier_ratio, 1e-6)),
                                          keyframe=self.frontend.is_keyframe(index)))
         merged = self.frontend.ba_merges != self._merges_seen  # a background BA (ba_thread) moved poses
-        if (r.need_keyframe or merged) and not r.lost and self.cfg.republish:
+        if (r.need_keyframe or merged) and not r.lost and self.cfg.republish and not self.frontend.keyframe_pending:
             out += self._refined()
         return out
+
+    def finish_keyframe(self) -> list[PoseUpdate]:
+        """The work of the keyframe the last :meth:`push` left for later (``keyframe_later``), and the poses it
+        (and a bundle adjustment merged with it) moved; nothing when none waits."""
+        if not self.frontend.initialized or self.frontend.finish_keyframe() is None or not self.cfg.republish:
+            return []
+        return self._refined()
 
     def skip(self, index: int, timestamp: float = 0.0) -> list[PoseUpdate]:
         """Frame ``index`` is not tracked (the caller keeps pace with a camera; never two in a row): what leaves

@@ -205,3 +205,32 @@ def test_slam_session_integrates_each_released_frame_once_and_moves_refined_pose
     wins = sess.map_updates()
     assert wins == seen and [w["frames"] for w in wins] == list(range(5, len(first) + 1, 5))
     assert all(w["after_frame"] in sess.fid_of for w in wins) and sess.map_updates() == []
+
+
+def test_a_keyframes_pose_leaves_before_its_keyframe_work_and_the_run_stays_the_same(room):
+    """``push(keyframe_later=True)`` (the tracker service at a camera's rate): a frame that becomes a keyframe
+    gives its pose, flagged as a keyframe, while its keyframe work waits; :meth:`PoseSession.finish_keyframe`
+    does that work. The front end's poses are those of the run that does the work at once (no bundle
+    adjustment in a worker: both runs deterministic), to rounding."""
+    runs = {}
+    for later in (False, True):
+        sess = _anchored_session(room, max_poses=4096)
+        waited = 0
+        for i in range(len(room)):
+            f = room[i]
+            sess.add_anchor(i, f.c2w)
+            ups = sess.push(i, f.rgb, f.timestamp, keyframe_later=later)
+            fe = sess.frontend
+            if fe.initialized and fe.keyframe_pending:
+                waited += 1
+                own = [u for u in ups if u.index == i]
+                assert own and own[0].keyframe and fe.is_keyframe(i) and i not in fe.store.kf_pose
+                sess.finish_keyframe()
+                assert i in fe.store.kf_pose and not fe.keyframe_pending
+        sess.finish()
+        runs[later] = (sess.frontend.poses(), waited, sorted(sess.frontend.store.kf_pose))
+    (p_now, n_now, kf_now), (p_later, n_later, kf_later) = runs[False], runs[True]
+    assert n_now == 0 and n_later >= 2 and kf_now == kf_later, (n_later, kf_now, kf_later)
+    assert sorted(p_now) == sorted(p_later)
+    for k in p_now:
+        np.testing.assert_allclose(p_later[k], p_now[k], atol=1e-6)  # (BA iterations amplify the rounding)

@@ -124,6 +124,8 @@ def _loop(svc: Service, core, args) -> int:
                 stop = True  # what the stop releases (held poses, a last bundle adjustment's) still goes out
             for _, pose in core.apply(msg):
                 svc.publish(keys.poses("tracker"), pose)
+            for _, pose in core.finish_frame():  # a new keyframe's work, after its pose went out
+                svc.publish(keys.poses("tracker"), pose)
         except Exception as e:  # a library failure: report it, keep serving
             svc.counters.inc("errors")
             svc.status.error(f"{type(e).__name__}: {e}")

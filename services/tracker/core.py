@@ -112,6 +112,10 @@ class TrackerServiceOptions:
     # equal fmapping slam's exactly); the service's CLI turns it on unless playback is paced.
     ba_thread: bool = False
     loop_thread: Optional[bool] = None  # the loop search's worker alone (None: with ba_thread)
+    # mono: a new keyframe's pose goes out before its keyframe work (landmarks, handing its BA and loop search to
+    # the workers, the new reference), which the shell runs right after publishing (finish_frame), as ORB-SLAM's
+    # tracking hands keyframes to its mapping thread. None: with ba_thread (off: the poses equal fmapping slam's)
+    keyframe_after_pose: Optional[bool] = None
     # mono: where a frame's pose comes from first (MonoConfig.frame_pose): "pnp" fits it to the KLT-tracked landmarks
     # and aligns photometrically only the frames that fail, 20-30 % less time a frame; None: the mono config's own
     # ("direct", as fmapping slam). The service's CLI picks "pnp" unless playback is paced.
@@ -436,7 +440,8 @@ class TrackerCore(MapFrontend, ServiceCore):
                 continue
             fe = sess.frontend
             loops, refused, reinits = len(fe.loops), len(fe.loops_refused), len(fe.reinits)
-            ups = sess.push(seq, np.asarray(f.rgb), f.timestamp, extra_depth=self._extra_depth())
+            later = self.opts.ba_thread if self.opts.keyframe_after_pose is None else self.opts.keyframe_after_pose
+            ups = sess.push(seq, np.asarray(f.rgb), f.timestamp, extra_depth=self._extra_depth(), keyframe_later=later)
             self._count(f, sess.last)
             out += self._publish(ups)
             self._save_state()
@@ -528,6 +533,20 @@ class TrackerCore(MapFrontend, ServiceCore):
                 return []  # no frame yet (the first one fixes the camera)
             return self._advance_mono()
         return self._advance_map()
+
+    def finish_frame(self) -> list[Output]:
+        """The keyframe work the last frame left for after its pose went out (``keyframe_after_pose``; the shell
+        calls this right after publishing), and the poses it moved. Nothing when none waits (the next frame
+        would do it first)."""
+        fe = self.mono
+        if self.opts.frontend != "mono" or fe is None or not fe.initialized or not fe.keyframe_pending:
+            return []
+        loops, refused, reinits = len(fe.loops), len(fe.loops_refused), len(fe.reinits)
+        out = self._publish(self.session.finish_keyframe())
+        self._save_state()
+        self._log_events(fe.keyframe_index, fe.loops[loops:], fe.loops_refused[refused:], fe.reinits[reinits:])
+        self.counters.set("loop_closures", len(fe.loops))
+        return out
 
     @staticmethod
     def _log_events(seq: int, loops: list, refused: list, reinits: list) -> None:

@@ -85,6 +85,7 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         self._loop_worker: Optional[BackgroundJob] = BackgroundJob("fmapping-loop") if self.cfg.loop_thread else None
         self._loop_epoch = 0  # a rescale or re-initialisation since a search began voids it
         self._loop_passed_over: Optional[int] = None  # the last keyframe not searched from (a search was busy)
+        self._kf_pending: Optional[tuple] = None  # (frame, rgb, grey, extra_depth): a keyframe's work for later
         # bundle adjustments (the worker's, the final one) and loop corrections (loop_thread) merged so far: their
         # poses moved
         self.ba_merges = 0
@@ -97,11 +98,17 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
 
     # ================================================================== tracking
     def track(self, index: int, rgb: np.ndarray,
-              extra_depth: Optional[Callable[[np.ndarray], Callable]] = None) -> TrackResult:
+              extra_depth: Optional[Callable[[np.ndarray], Callable]] = None,
+              keyframe_later: bool = False) -> TrackResult:
         """Track a frame after the bootstrap. ``extra_depth(c2w)`` -> ``uv -> depth`` callable
-        (e.g. rendered from the map) adds dense points to new keyframes."""
+        (e.g. rendered from the map) adds dense points to new keyframes. With ``keyframe_later`` a frame
+        that becomes a keyframe returns its tracked pose at once and the keyframe's work (landmarks, its
+        bundle adjustment and loop search handed to the workers, the new reference) waits for
+        :meth:`finish_keyframe`: a caller at a camera's rate hands the pose on first (the next call, or
+        :meth:`flush_ba`, does that work if the caller did not)."""
         if not self.initialized:
             raise RuntimeError("MonoFrontend.track before a successful bootstrap")
+        self.finish_keyframe()
         if self._anchor is not None and index - self._first_index >= 2 * self.cfg.late_anchor_frames:
             self.settle_scale(f"no tracked frame with an anchor pose in the first {2 * self.cfg.late_anchor_frames}")
         self._merge_ba(wait=False)  # a bundle adjustment finished since the last frame: take it first
@@ -147,18 +154,39 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         self.store.rel[index] = (self._kf_index, inv_pose(self.store.kf_pose[self._kf_index]) @ res.c2w)
         if res.need_keyframe and self._defer_keyframe(res):
             res.need_keyframe = False
+        if res.need_keyframe and keyframe_later and self._anchor is None:
+            self._kf_pending = (index, rgb, gray, extra_depth)
+            return res
         if res.need_keyframe:
             t0 = time.perf_counter()
-            c2w = self._add_keyframe(index, rgb, gray, res.c2w)
-            try:
-                self._set_reference(index, rgb, gray, extra_depth)
-            except ValueError:
-                pass  # keep the old reference; the tracker asks again next frame
-            res.c2w = c2w
+            res.c2w = self._keyframe_work(index, rgb, gray, res.c2w, extra_depth)
             res.ms += (time.perf_counter() - t0) * 1000.0  # keyframe work counts as tracking time
         if self._anchor is not None and index - self._first_index >= self.cfg.late_anchor_frames - 1:
             res.c2w = self._late_anchor(index, self._merge_moving(res.c2w))
         return res
+
+    def _keyframe_work(self, index: int, rgb, gray, c2w: np.ndarray, extra_depth=None) -> np.ndarray:
+        """Frame ``index`` (tracked at ``c2w``) becomes a keyframe and the new reference; its pose after that."""
+        c2w = self._add_keyframe(index, rgb, gray, c2w)
+        try:
+            self._set_reference(index, rgb, gray, extra_depth)
+        except ValueError:
+            pass  # keep the old reference; the tracker asks again next frame
+        return c2w
+
+    @property
+    def keyframe_pending(self) -> bool:
+        """Is a keyframe's work waiting for :meth:`finish_keyframe` (``track(keyframe_later=True)``)?"""
+        return self._kf_pending is not None
+
+    def finish_keyframe(self) -> Optional[np.ndarray]:
+        """The work of the keyframe :meth:`track` left for later (``keyframe_later``), from the frame's pose as
+        the front end has it now; that keyframe's pose after it, or None when none was waiting."""
+        if self._kf_pending is None:
+            return None
+        (index, rgb, gray, extra), self._kf_pending = self._kf_pending, None
+        k, rel = self.store.rel[index]
+        return self._keyframe_work(index, rgb, gray, orthonormalize(self.store.kf_pose[k] @ rel), extra)
 
     def _late_anchor(self, index: int, c2w: np.ndarray) -> np.ndarray:
         """Take the anchor's baseline again at frame ``index`` (see ``MonoConfig.late_anchor_frames``):
@@ -483,7 +511,8 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         """Wait for a bundle adjustment in flight and merge it, then a loop search in flight (``loop_thread``)
         and one from the last keyframe if it was passed over, with the bundle adjustment each correction starts
         (the end of a sequence, a snapshot of the final poses). True when poses moved."""
-        merged = self._merge_ba(wait=True)
+        merged = self.finish_keyframe() is not None
+        merged = self._merge_ba(wait=True) or merged
         if self._loop_worker is not None:
             merged = self._flush_loop() or merged
         return merged
@@ -569,8 +598,8 @@ class MonoFrontend(Bootstrap, LoopClosing, Restart):
         return self._kf_index
 
     def is_keyframe(self, index: int) -> bool:
-        """Is frame ``index`` one of the front end's keyframes (bootstrap or tracked)?"""
-        return index in self.store.kf_pose
+        """Is frame ``index`` one of the front end's keyframes (bootstrap or tracked, or its work pending)?"""
+        return index in self.store.kf_pose or (self._kf_pending is not None and self._kf_pending[0] == index)
 
     def keyframe_poses(self) -> dict:
         return {k: p.copy() for k, p in self.store.kf_pose.items()}
