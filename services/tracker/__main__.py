@@ -36,7 +36,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "with the next frame's (off: answered at once with quality 0, no pose)")
     p.add_argument("--ba-thread", default="on", choices=["on", "off"],
                    help="mono: keyframe bundle adjustment and loop search in worker threads, merged between frames, "
-                        "so that a keyframe does not hold up its pose (off: on the frame path, as fmapping slam)")
+                        "and a keyframe's own work after its pose went out, so that a keyframe does not hold up "
+                        "its pose (off: on the frame path, as fmapping slam)")
     p.add_argument("--frame-pose", default="pnp", choices=["pnp", "direct"],
                    help="mono: a frame's pose from its KLT-tracked landmarks (PnP), checked photometrically, the "
                         "direct alignment only for the frames that fail that (20-30 %% less time a frame); direct: "
