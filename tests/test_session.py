@@ -234,3 +234,41 @@ def test_a_keyframes_pose_leaves_before_its_keyframe_work_and_the_run_stays_the_
     assert sorted(p_now) == sorted(p_later)
     for k in p_now:
         np.testing.assert_allclose(p_later[k], p_now[k], atol=1e-6)  # (BA iterations amplify the rounding)
+
+
+def test_the_tracker_service_sends_a_keyframes_pose_before_its_keyframe_work(room):
+    """``TrackerServiceOptions.keyframe_after_pose``: ``apply`` answers a new keyframe with its pose (flagged as a
+    keyframe) and leaves the keyframe work to ``finish_frame``, which the shell calls after publishing; the poses
+    it moved go out then. The front end ends with the poses of the run without it, to rounding; the last pose
+    sent for each frame is within the republishing thresholds of that run's (a keyframe's first pose now leaves
+    before the bundle adjustment merged at the keyframe moves it, by less than them or it would go out again)."""
+    from fmapping.geometry import pose_distance
+    from fmapping.session import SessionConfig
+    from services.tracker.core import TrackerCore, TrackerServiceOptions
+
+    last, early, poses = {}, {}, {}
+    for later in (False, True):
+        core = TrackerCore(opts=TrackerServiceOptions(keyframe_after_pose=later))
+        final, waited = {}, []
+        for i in range(len(room)):
+            f = room[i]
+            core.handle("poses", P.encode(P.Pose(seq=i, timestamp=f.timestamp, c2w=f.c2w, source="gt")))
+            answered = [m for _, m in core.handle("frames", P.encode(P.frame_from_dataset(f, seq=i)))]
+            fe = core.mono
+            if fe is not None and fe.initialized and fe.keyframe_pending:
+                assert any(m.seq == i and m.keyframe for m in answered) and i not in fe.store.kf_pose
+                waited.append(i)
+            answered += [m for _, m in core.finish_frame()]
+            assert fe is None or not fe.keyframe_pending
+            final.update({m.seq: m.c2w for m in answered if m.quality > 0})
+        final.update({m.seq: m.c2w for _, m in core.handle("control", P.encode(P.Control(command="stop")))
+                      if m.quality > 0})
+        last[later], early[later], poses[later] = final, waited, core.mono.poses()
+    assert not early[False] and len(early[True]) >= 2, early
+    assert sorted(poses[False]) == sorted(poses[True]) and sorted(last[False]) == sorted(last[True])
+    for k in poses[False]:
+        np.testing.assert_allclose(poses[True][k], poses[False][k], atol=1e-6)
+    cfg = SessionConfig()
+    for k in last[False]:
+        dt, dr = pose_distance(last[True][k], last[False][k])
+        assert dt <= 2 * cfg.republish_min_m and dr <= 2 * cfg.republish_min_deg, (k, dt, dr)
