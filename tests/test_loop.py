@@ -556,3 +556,22 @@ def test_the_bench_checks_a_loops_relative_pose_against_orb_matches_between_its_
         assert v["images_side_with"] == "gt" and v["sampson_px_gt"] == pytest.approx(exact, abs=1e-3), v
         assert images_verdict(ga, gb, ds.camera, true, wrong)["images_side_with"] == "loop"
     assert orb_matches(ga, np.zeros_like(gb)) is None  # a blank image: no matches, no verdict
+
+
+def test_a_loop_search_begun_before_a_rescale_is_dropped():
+    """``loop_thread``: a search works on a copy of the map as it was; a rescale (or a re-initialisation) while it
+    runs voids it, so its result is dropped at the merge. Without the rescale the same result is merged."""
+    from fmapping.camera import PinholeCamera
+    from fmapping.tracking.mono import MonoConfig, MonoFrontend
+    from fmapping.tracking.mono.loop_closing import LoopQuery, LoopSearch
+
+    cam = PinholeCamera(100.0, 100.0, 80.0, 60.0, 160, 120)
+    for rescale in (False, True):
+        fe = MonoFrontend(cam, None, MonoConfig(ba_thread=True, loop_thread=True))
+        q = LoopQuery(5, None, 1.0, {}, [], None, fe._loop_epoch)
+        fe._loop_worker.start(q, lambda: LoopSearch([{"frame": 5, "keyframe": 0, "why": "a test"}]))
+        if rescale:
+            fe._scale_part(np.zeros(3), 2.0)
+        fe._merge_loop(wait=True)
+        assert not fe._loop_worker.busy
+        assert fe.loops_refused == ([] if rescale else [{"frame": 5, "keyframe": 0, "why": "a test"}])
