@@ -306,6 +306,36 @@ def test_mapper_core_refines_on_request_and_goes_on(dataset):
     assert core.finished and core.counters.get("updates_final") == 2  # the one asked for and the closing one
 
 
+def test_mapper_core_keeps_the_bootstrap_frame_while_the_tracker_holds_its_pose(dataset):
+    """The mono tracker holds its bootstrap's poses until the late anchor; at a camera's rate more than
+    ``max_pending`` frames come meanwhile. The waiting frames are thinned evenly, frames known not to be
+    keyframes first, and the oldest stays: the bootstrap's first frame, a keyframe, is mapped when its pose
+    comes (it used to be dropped as the oldest, so the map lost its first keyframe)."""
+    from services.mapper.core import MapperCore, MapperServiceOptions
+
+    opts = MapperServiceOptions(pose_source="tracker", points_interval=1e9, checkpoint_every=0, pose_timeout=0,
+                                max_pending=4)
+    core = MapperCore(small_cfg(), opts)
+    pose = lambda k, kf: P.Pose(seq=k, timestamp=float(k), c2w=dataset[k].c2w, source="tracker",  # noqa: E731
+                                keyframe=kf)
+    core.apply(pose(9, False))  # a later frame's pose before the held ones: it goes first when over the bound
+    held = []
+    for k in range(12):  # frames 0..11 come, no pose for 0..8 yet
+        core.apply(P.frame_from_dataset(dataset[k], seq=k, with_depth=False))
+        held.append(len(core.frames))
+    assert max(held) == opts.max_pending and 9 not in core.frames and 0 in core.frames
+    kept = sorted(core.frames)
+    assert kept[0] == 0 and kept[-1] == 11 and core.counters.get("frames_without_pose") == 12 - 4
+    assert core.ack < 0 and core.mapper is None  # nothing consumed: the first frame still waits
+    for k in range(9):  # the bootstrap's poses, released at once: 0 is a keyframe
+        core.apply(pose(k, k == 0))
+    core.apply(pose(10, True))
+    core.apply(pose(11, False))
+    assert core.seq_of_fid == kept and core.counters.get("keyframes_integrated") == 1 + (10 in kept)
+    core.apply(P.Control("stop", {"reason": "end"}))
+    assert core.finished and core.ack == 11
+
+
 def test_the_mapper_takes_the_sources_final_poses_before_its_closing_stage(room320):
     """At the stop the tracker still sends its last poses: a bundle adjustment merged at the end moves frames the
     mapper has integrated. ``await_source_final`` takes them (and frames queued behind the stop) until the tracker

@@ -18,9 +18,10 @@ poses its bundle adjustment moved). Before the map is initialised a frame may en
 without a pose when ``unposed_init`` is on (the mapper then guesses and optimises its init
 poses, the first ``anchor_frames`` fixed by the anchor source): that is for the tracker's ``map`` front end,
 which cannot track before there is a map; the default ``mono`` tracker poses every frame itself. A frame
-waits for its pose; when more than ``max_pending`` frames wait, the oldest is dropped
-(``frames_without_pose``), and so is a frame whose pose has not come within ``pose_timeout`` seconds (a
-dead or restarted producer). The acknowledgement (``ack``) is the newest frame number consumed
+waits for its pose; when more than ``max_pending`` frames wait, one of them is dropped
+(``frames_without_pose``), thinned evenly, frames known not to be keyframes first, the oldest kept
+(:meth:`MapperCore._thin_waiting`), and a frame whose pose has not come within ``pose_timeout`` seconds (a
+dead or restarted producer) is dropped. The acknowledgement (``ack``) is the newest frame number consumed
 (integrated or dropped): the player's flow control waits on it.
 
 Bad input (undecodable payload, a frame whose size or intrinsics differ from the first
@@ -45,7 +46,7 @@ from fmapping import protocol as P
 from fmapping.fileio import atomic_open, write_json
 from fmapping.geometry import orthonormalize
 from fmapping.map_outputs import map_mesh, map_points
-from services.core_support import ServiceCore
+from services.core_support import ServiceCore, ranked_victim
 from services.mapper.intake import KeyframeBook, book_for
 
 log = logging.getLogger("fmapping.mapper")
@@ -348,7 +349,7 @@ class MapperCore(ServiceCore):
                 waited = self.clock() - self._arrived.get(seq, self.clock())
                 timed_out = self.opts.pose_timeout > 0 and waited > self.opts.pose_timeout
                 orphaned = seq <= self._orphaned
-                if len(self.frames) > self.opts.max_pending or timed_out or orphaned:
+                if timed_out or orphaned:
                     if orphaned:
                         self.counters.inc("orphaned_frames")
                     self.frames.popitem(last=False)
@@ -356,6 +357,9 @@ class MapperCore(ServiceCore):
                     if timed_out:
                         self.counters.inc("pose_timeouts")
                     self.last_seq = max(self.last_seq, seq)
+                    continue
+                if len(self.frames) > self.opts.max_pending:
+                    self._thin_waiting()
                     continue
                 break
             behind = self.behind()
@@ -375,6 +379,22 @@ class MapperCore(ServiceCore):
         if self.mapper is not None and self.mapper.initialized:
             self.anchors.clear()
         return out
+
+    def _thin_waiting(self) -> None:
+        """More than ``max_pending`` frames wait behind one whose pose has not come (e.g. the mono tracker
+        holds its bootstrap's poses until the late anchor): drop one of them, thinned evenly among those
+        of the lowest keyframe rank (:func:`services.core_support.ranked_victim`: frames known not to be
+        keyframes first, then those with no pose yet; the oldest and the newest stay), so that the
+        bootstrap's first frame, a keyframe whose pose comes last, is not dropped for being the oldest."""
+        seqs = list(self.frames)
+        i, _ = ranked_victim(seqs, [self.book.rank(s) for s in seqs])
+        seq = seqs[i]
+        del self.frames[seq]
+        self._arrived.pop(seq, None)
+        self.poses.pop(seq, None)
+        self.counters.inc("frames_without_pose")
+        if i == 0:
+            self.last_seq = max(self.last_seq, seq)
 
     def behind(self) -> bool:
         """More than ``behind_frames`` frames wait (here and in the shell's inbox): catch up."""
